@@ -1,0 +1,130 @@
+"""Device selection and the Warp <-> torch bridge (DLPack, no copies)."""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+
+import torch
+import warp as wp
+
+# Set before anything can initialise Warp: quiet unless asked, optional kernel cache location.
+wp.config.log_level = wp.LOG_INFO if os.environ.get("ELICIT_WARP_VERBOSE") else wp.LOG_WARNING
+if os.environ.get("ELICIT_WARP_CACHE"):
+    wp.config.kernel_cache_dir = os.environ["ELICIT_WARP_CACHE"]
+
+_INIT_LOCK = threading.Lock()
+_WARP_READY = False
+
+
+def init_warp() -> None:
+    """Initialise Warp once (thread-safe)."""
+    global _WARP_READY
+    with _INIT_LOCK:
+        if _WARP_READY:
+            return
+        wp.init()
+        _WARP_READY = True
+
+
+def default_device() -> torch.device:
+    """``cuda`` when torch and Warp both see a GPU, else ``cpu``; ``ELICIT_DEVICE`` overrides."""
+    forced = os.environ.get("ELICIT_DEVICE")
+    if forced:
+        return torch.device(forced)
+    init_warp()
+    if torch.cuda.is_available() and wp.is_cuda_available():
+        return torch.device("cuda")
+    return torch.device("cpu")
+
+
+def warp_device(device: torch.device) -> str:
+    """Warp's name for a torch device."""
+    if device.type == "cuda":
+        return f"cuda:{device.index or 0}"
+    return "cpu"
+
+
+_LOADED: set[tuple[int, str]] = set()
+
+
+def load_kernel(kernel, device: torch.device) -> None:
+    """Compile/load a kernel's module once per device, so parallel launches never race to compile it."""
+    key = (id(kernel), warp_device(device))
+    if key not in _LOADED:
+        init_warp()
+        wp.load_module(kernel.module, device=key[1])
+        _LOADED.add(key)
+
+
+def to_warp(tensor: torch.Tensor, dtype=None) -> wp.array:
+    """A Warp view of a contiguous tensor (shares memory; never touches ``tensor.grad``)."""
+    init_warp()
+    t = tensor.detach()
+    if not t.is_contiguous():
+        raise ValueError("to_warp needs a contiguous tensor; call .contiguous() first")
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+
+def warp_scalar(dtype: torch.dtype):
+    """Warp's scalar type for a torch float dtype (float32 or float64)."""
+    if dtype == torch.float32:
+        return wp.float32
+    if dtype == torch.float64:
+        return wp.float64
+    raise TypeError(f"only float32 and float64 are supported, got {dtype}")
+
+
+def warp_vec3(values: torch.Tensor, vec3):
+    """A Warp vector constant from three tensor values (e.g. a box corner)."""
+    return vec3(*[float(v) for v in values.tolist()])
+
+
+def warp_grid_frame(box: torch.Tensor, shape: tuple[int, ...], vec3) -> list:
+    """Kernel constants locating a node-aligned grid of ``shape`` over ``box``: [bmin, scale, res]."""
+    lo, hi = box[0].double(), box[1].double()
+    scale = (torch.tensor(shape, dtype=torch.float64) - 1) / (hi - lo)
+    return [warp_vec3(lo, vec3), warp_vec3(scale, vec3), wp.vec3i(*shape)]
+
+
+def cpu_threads() -> int:
+    """Threads used to split one CPU kernel launch (Warp runs a CPU launch on one thread)."""
+    env = os.environ.get("ELICIT_CPU_THREADS")
+    if env:
+        return max(1, int(env))
+    return max(1, min(os.cpu_count() or 1, 8))
+
+
+def launch_parts(n_items: int, device: torch.device) -> int:
+    """How many pieces to split a launch of ``n_items`` threads into: 1 on CUDA, one per CPU thread."""
+    if device.type == "cuda":
+        return 1
+    return min(cpu_threads(), max(1, n_items // 256))
+
+
+def split_launch(n_items: int, parts: int, run: Callable[[int, int, int], None]) -> None:
+    """Call ``run(begin, end, part)`` for ``parts`` contiguous pieces of [0, n_items), in parallel.
+
+    Warp releases the GIL during a CPU launch, so Python threads give real parallelism.
+    """
+    if parts <= 1:
+        run(0, n_items, 0)
+        return
+    bounds = [n_items * p // parts for p in range(parts + 1)]
+    errors: list[BaseException] = []
+
+    def work(p: int) -> None:
+        try:
+            run(bounds[p], bounds[p + 1], p)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(p,)) for p in range(1, parts)]
+    for t in threads:
+        t.start()
+    work(0)
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]

@@ -1,0 +1,1 @@
+"""Warp kernels (installed as ``elicit_diffrender.kernels``): grid look-ups, ray marching, skinning."""

@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# One-command setup on Debian (as root) or any Linux with the system packages already present.
+#   - Debian's libllvm19 for Dr.Jit's LLVM backend (the system's LLVM 15 crashes Mitsuba's llvm variants)
+#   - a virtual environment in .venv with a torch/torchvision pair that import together
+#   - this package, editable, with its dev extras
+#   - the Anny body model's one-time cache (about a minute, once)
+# Offline except the package registries. Idempotent: a second run takes seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+VENV=${ELICIT_VENV:-$ROOT/.venv}
+PY=${PYTHON:-python3}
+log() { printf '[setup] %s\n' "$*"; }
+
+# 1. System library: libLLVM 19 for drjit/mitsuba's llvm_ad_rgb variant.
+if ! ls /usr/lib/*/libLLVM.so.19.1 >/dev/null 2>&1 && ! ls /usr/lib/llvm-19/lib/libLLVM.so.19.1 >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    log "installing libllvm19 (apt)"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q libllvm19 >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q libllvm19 >/dev/null; }
+  else
+    log "libLLVM 19 is missing: run 'apt-get install libllvm19' as root (Mitsuba's llvm variant needs it)"
+    exit 1
+  fi
+fi
+
+# 2. Virtual environment.
+if [ ! -x "$VENV/bin/python" ]; then
+  log "creating $VENV"
+  "$PY" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+fi
+PIP=("$VENV/bin/python" -m pip install -q --disable-pip-version-check)
+
+# 3. torch + torchvision that import together (PyPI's torchvision fails beside a mismatched torch).
+case "$(uname -m)" in
+  aarch64) TORCH_PIN=(torch==2.9.1 torchvision==0.24.1) ;;
+  *) TORCH_PIN=(torch==2.14.1 torchvision==0.29.1) ;;
+esac
+want="${TORCH_PIN[*]}"
+have=$("$VENV/bin/python" - <<'EOF' 2>/dev/null || true
+import importlib.metadata as m
+print(f"torch=={m.version('torch').split('+')[0]} torchvision=={m.version('torchvision').split('+')[0]}")
+EOF
+)
+if [ "$have" != "$want" ]; then
+  log "installing ${want}"
+  "${PIP[@]}" "${TORCH_PIN[@]}"
+fi
+
+# 4. The package and its dev extras, re-run only when pyproject.toml changes.
+stamp="$VENV/.elicit-installed"
+digest=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$digest" ] || ! "$VENV/bin/python" -c "import elicit_diffrender" 2>/dev/null; then
+  log "installing elicit-diffrender[dev]"
+  "${PIP[@]}" -e ".[dev]" "${TORCH_PIN[@]}"
+  echo "$digest" >"$stamp"
+fi
+
+# 5. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
+"$VENV/bin/python" -m elicit_diffrender.body.anny_cache
+log "ready: $VENV"

@@ -1,0 +1,192 @@
+"""Skinning warp: agreement with the torch reference, adjoints, and hard cases."""
+
+import math
+
+import pytest
+import torch
+
+from elicit_diffrender.reference import forward_lbs_reference, inverse_lbs_reference
+from elicit_diffrender.skinning import (
+    axis_angle_to_matrix,
+    forward_lbs,
+    inverse_lbs,
+    matrix_to_axis_angle,
+    merge_bones,
+    merge_weights,
+    rigid_inverse,
+)
+
+WBOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
+
+
+def random_transforms(n_bones: int, seed: int = 0, dtype=torch.float64, angle: float = 0.6):
+    gen = torch.Generator().manual_seed(seed)
+    mats = torch.eye(4, dtype=dtype).repeat(n_bones, 1, 1)
+    mats[:, :3, :3] = axis_angle_to_matrix(angle * torch.randn(n_bones, 3, generator=gen, dtype=dtype))
+    mats[:, :3, 3] = 0.2 * torch.randn(n_bones, 3, generator=gen, dtype=dtype)
+    return mats
+
+
+def random_weights(n_bones: int, res=(6, 5, 7), seed: int = 1, dtype=torch.float64):
+    gen = torch.Generator().manual_seed(seed)
+    return torch.softmax(2 * torch.randn(n_bones + 1, *res, generator=gen, dtype=dtype), 0)[:-1].contiguous()
+
+
+@pytest.mark.parametrize("n_bones", [3, 24, 104])
+def test_inverse_lbs_matches_reference(n_bones):
+    gen = torch.Generator().manual_seed(2)
+    pts = 0.6 * torch.randn(500, 3, generator=gen, dtype=torch.float64)
+    mats, weights = random_transforms(n_bones), random_weights(n_bones)
+    x_c, fg = inverse_lbs(pts, mats, weights, WBOX)
+    rx, rfg = inverse_lbs_reference(pts, mats, weights, WBOX)
+    torch.testing.assert_close(x_c, rx, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(fg, rfg, atol=1e-12, rtol=1e-10)
+    assert fg.max() > 0.3
+
+
+def test_inverse_lbs_gradients_match_finite_differences():
+    gen = torch.Generator().manual_seed(3)
+    pts = (0.4 * torch.randn(12, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    mats = random_transforms(3, seed=4).requires_grad_()
+    weights = random_weights(3, res=(4, 4, 4), seed=5).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p, m, w: inverse_lbs(p, m, w, WBOX), (pts, mats, weights),
+                                    eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_inverse_lbs_gradients_match_reference_autograd():
+    gen = torch.Generator().manual_seed(6)
+    pts = (0.5 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    mats = random_transforms(24, seed=7).requires_grad_()
+    weights = random_weights(24, res=(8, 8, 8), seed=8).requires_grad_()
+    wx, wfg = torch.randn(2000, 3, generator=gen, dtype=torch.float64), torch.randn(2000, generator=gen,
+                                                                                    dtype=torch.float64)
+    ours = inverse_lbs(pts, mats, weights, WBOX)
+    ref = inverse_lbs_reference(pts, mats, weights, WBOX)
+    g1 = torch.autograd.grad((ours[0] * wx).sum() + (ours[1] * wfg).sum(), (pts, mats, weights))
+    g2 = torch.autograd.grad((ref[0] * wx).sum() + (ref[1] * wfg).sum(), (pts, mats, weights))
+    for a, b in zip(g1, g2, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-8)
+
+
+def test_only_requested_gradients_are_computed():
+    pts = torch.randn(50, 3, dtype=torch.float64, requires_grad=True)
+    mats = random_transforms(4)
+    weights = random_weights(4)
+    x_c, _ = inverse_lbs(pts, mats, weights, WBOX)
+    x_c.sum().backward()
+    assert pts.grad is not None and torch.isfinite(pts.grad).all()
+
+
+def test_points_outside_every_influence_are_finite():
+    pts = torch.tensor([[5.0, 5.0, 5.0], [0.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    mats = random_transforms(3, angle=0.0).requires_grad_()
+    weights = torch.zeros(3, 4, 4, 4, dtype=torch.float64)
+    weights[:, 2:, 2:, 2:] = 1e-9  # a tiny influence far from the origin
+    weights.requires_grad_()
+    x_c, fg = inverse_lbs(pts, mats, weights, WBOX)
+    assert torch.isfinite(x_c).all() and torch.isfinite(fg).all()
+    assert fg[0] == 0 and fg[1] < 1e-8
+    (x_c.sum() + fg.sum()).backward()
+    for t in (pts.grad, mats.grad, weights.grad):
+        assert torch.isfinite(t).all()
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, math.pi - 1e-7, math.pi])
+def test_single_bone_is_the_exact_rigid_motion(angle):
+    axis = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
+    mat = torch.eye(4, dtype=torch.float64)[None].clone()
+    mat[0, :3, :3] = axis_angle_to_matrix(axis * angle)
+    mat[0, :3, 3] = torch.tensor([0.1, -0.05, 0.02], dtype=torch.float64)
+    pts = 0.3 * torch.randn(100, 3, dtype=torch.float64)
+    weights = torch.ones(1, 5, 5, 5, dtype=torch.float64)
+    x_c, fg = inverse_lbs(pts, mat, weights, WBOX * 3)
+    torch.testing.assert_close(x_c, pts @ mat[0, :3, :3].T + mat[0, :3, 3], atol=1e-13, rtol=0)
+    torch.testing.assert_close(fg, torch.ones(100, dtype=torch.float64))
+
+
+def test_axis_angle_tiny_angles_and_gradients():
+    for angle in (0.0, 1e-12, 1e-8, 1e-4, 1e-3, 0.5, 3.0, math.pi):
+        aa = torch.tensor([angle, 0.0, 0.0], dtype=torch.float64)
+        expected = torch.tensor([[1, 0, 0], [0, math.cos(angle), -math.sin(angle)],
+                                 [0, math.sin(angle), math.cos(angle)]], dtype=torch.float64)
+        torch.testing.assert_close(axis_angle_to_matrix(aa), expected, atol=1e-15, rtol=0)
+    zero = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    axis_angle_to_matrix(zero).sum().backward()
+    assert torch.isfinite(zero.grad).all()
+    assert torch.autograd.gradcheck(axis_angle_to_matrix, (torch.tensor([1e-5, 2e-5, -1e-5], dtype=torch.float64,
+                                                                        requires_grad=True),))
+    assert torch.autograd.gradcheck(axis_angle_to_matrix, (torch.tensor([0.3, 1.0, -2.0], dtype=torch.float64,
+                                                                        requires_grad=True),))
+    rot32 = axis_angle_to_matrix(torch.tensor([1e-7, 0, 0], dtype=torch.float32))
+    assert torch.isfinite(rot32).all()
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-3, 1.0, math.pi - 1e-3, math.pi - 1e-6])
+def test_matrix_to_axis_angle_round_trip(angle):
+    axis = torch.nn.functional.normalize(torch.tensor([0.2, 0.9, -0.4], dtype=torch.float64), dim=0)
+    aa = axis * angle
+    back = matrix_to_axis_angle(axis_angle_to_matrix(aa))
+    torch.testing.assert_close(axis_angle_to_matrix(back), axis_angle_to_matrix(aa), atol=1e-9, rtol=0)
+
+
+def test_float32_agrees_with_float64():
+    pts = 0.5 * torch.randn(3000, 3, dtype=torch.float64)
+    mats, weights = random_transforms(24), random_weights(24, res=(16, 16, 16))
+    x64, fg64 = inverse_lbs(pts, mats, weights, WBOX)
+    x32, fg32 = inverse_lbs(pts.float(), mats.float(), weights.float(), WBOX.float())
+    torch.testing.assert_close(x32.double(), x64, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(fg32.double(), fg64, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-2, 1e2])
+def test_scaled_scene_warps_the_same(scale):
+    pts = 0.5 * torch.randn(400, 3, dtype=torch.float64)
+    mats, weights = random_transforms(5), random_weights(5)
+    x_c, fg = inverse_lbs(pts, mats, weights, WBOX)
+    mats_s = mats.clone()
+    mats_s[:, :3, 3] *= scale
+    xs, fgs = inverse_lbs(pts * scale, mats_s, weights, WBOX * scale)
+    torch.testing.assert_close(xs, x_c * scale, atol=1e-12 * scale, rtol=1e-9)
+    torch.testing.assert_close(fgs, fg, atol=1e-12, rtol=1e-9)
+
+
+def test_forward_lbs_matches_reference_and_gradients():
+    gen = torch.Generator().manual_seed(9)
+    verts = torch.randn(300, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    idx = torch.randint(0, 7, (300, 4), generator=gen)
+    w = torch.rand(300, 4, generator=gen, dtype=torch.float64)
+    w[:, 3] = 0
+    w = (w / w.sum(1, keepdim=True)).requires_grad_()
+    mats = random_transforms(7, seed=10).requires_grad_()
+    torch.testing.assert_close(forward_lbs(verts, idx, w, mats), forward_lbs_reference(verts, idx, w, mats))
+    assert torch.autograd.gradcheck(lambda v, ww, m: forward_lbs(v, idx[:20], ww, m),
+                                    (verts[:20].detach().requires_grad_(), w[:20].detach().requires_grad_(), mats))
+
+
+def test_forward_then_inverse_round_trip():
+    """A rigidly posed point warps back to where it started when the volume holds its bone's weight."""
+    mats = random_transforms(2, seed=12)
+    verts = 0.2 * torch.randn(50, 3, dtype=torch.float64)
+    idx = torch.zeros(50, 1, dtype=torch.long)
+    posed = forward_lbs(verts, idx, torch.ones(50, 1, dtype=torch.float64), mats)
+    weights = torch.zeros(2, 5, 5, 5, dtype=torch.float64)
+    weights[0] = 1.0
+    back, fg = inverse_lbs(posed, rigid_inverse(mats), weights, WBOX)
+    torch.testing.assert_close(back, verts, atol=1e-12, rtol=0)
+
+
+def test_merge_bones_and_weights():
+    parents = [-1, 0, 1, 2, 1, 4, 0]
+    mapping = merge_bones(parents, keep=[0, 1, 4])
+    assert mapping.tolist() == [0, 1, 1, 1, 2, 2, 0]
+    w = torch.eye(7, dtype=torch.float64)
+    merged = merge_weights(w, mapping, 3)
+    assert merged.sum(1).tolist() == [1.0] * 7
+    assert merged[:, 1].sum() == 3
+    with pytest.raises(ValueError, match="root"):
+        merge_bones(parents, keep=[1])
+
+
+def test_bone_count_limits():
+    with pytest.raises(ValueError, match="1..128"):
+        inverse_lbs(torch.zeros(1, 3), torch.eye(4).repeat(129, 1, 1), torch.zeros(129, 2, 2, 2), WBOX.float())

@@ -1,0 +1,241 @@
+"""Ray marcher: agreement with the torch reference, hand-written adjoint, and hard cases."""
+
+import math
+
+import pytest
+import torch
+
+from elicit_diffrender.device import to_warp
+from elicit_diffrender.reference import composite_reference
+from elicit_diffrender.volume import RaySamples, composite, sample_rays
+
+BOX = torch.tensor([[-1.0, -1.2, -0.8], [1.0, 1.1, 0.9]])
+
+
+def camera_rays(n: int, dtype=torch.float64, seed: int = 0, scale: float = 1.0):
+    gen = torch.Generator().manual_seed(seed)
+    origins = torch.tensor([0.1, -0.2, -3.0], dtype=dtype) * scale + 0.05 * scale * torch.randn(n, 3, generator=gen,
+                                                                                                  dtype=dtype)
+    target = (torch.rand(n, 3, generator=gen, dtype=dtype) - 0.5) * 1.6 * scale
+    dirs = torch.nn.functional.normalize(target - origins, dim=1)
+    return origins, dirs
+
+
+def random_grid(shape=(6, 7, 5), dtype=torch.float64, seed: int = 1):
+    gen = torch.Generator().manual_seed(seed)
+    density = (torch.randn(shape, generator=gen, dtype=dtype) * 2 + 1).requires_grad_()
+    color = torch.randn((*shape, 3), generator=gen, dtype=dtype).requires_grad_()
+    return density, color
+
+
+@pytest.mark.parametrize("activation", ["relu", "softplus"])
+def test_matches_reference_float64(activation):
+    o, d = camera_rays(40)
+    density, color = random_grid()
+    samples = sample_rays(o, d, BOX.double(), 24, jitter=True, seed=3)
+    fg = torch.rand(samples.n_samples, dtype=torch.float64)
+    ours = composite(samples, density, color, BOX, fg=fg, outputs=("rgb", "alpha", "depth"), activation=activation,
+                     t_thresh=0.0)
+    ref = composite_reference(samples, density, color, BOX, fg=fg, activation=activation)
+    for key in ("rgb", "alpha", "depth"):
+        torch.testing.assert_close(ours[key], ref[key], atol=1e-12, rtol=1e-10)
+    assert ours["alpha"].max() > 0.2  # the case is not trivially empty
+
+
+def test_gradients_match_finite_differences():
+    o, d = camera_rays(6, seed=4)
+    density, color = random_grid((4, 5, 4), seed=5)
+    samples = sample_rays(o, d, BOX.double(), 7, jitter=True, seed=1)
+    positions = samples.positions.clone().requires_grad_()
+    fg = (0.3 + 0.7 * torch.rand(samples.n_samples, dtype=torch.float64)).requires_grad_()
+
+    def fn(dens, col, pos, fgv):
+        out = composite(samples, dens, col, BOX, positions=pos, fg=fgv, outputs=("rgb", "alpha", "depth"),
+                        activation="softplus", t_thresh=0.0)
+        return out["rgb"], out["alpha"], out["depth"]
+
+    assert torch.autograd.gradcheck(fn, (density, color, positions, fg), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_gradients_match_reference_autograd():
+    o, d = camera_rays(64, seed=7)
+    density, color = random_grid((8, 8, 8), seed=8)
+    samples = sample_rays(o, d, BOX.double(), 32, jitter=True, seed=2)
+    pos = samples.positions.clone().requires_grad_()
+    fg = torch.rand(samples.n_samples, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(64, 5, dtype=torch.float64)
+
+    def loss(out):
+        return (out["rgb"] * weights[:, :3]).sum() + (out["alpha"] * weights[:, 3]).sum() + (
+            out["depth"] * weights[:, 4]).sum()
+
+    grads = torch.autograd.grad(loss(composite(samples, density, color, BOX, positions=pos, fg=fg,
+                                               outputs=("rgb", "alpha", "depth"), t_thresh=0.0)),
+                                (density, color, pos, fg))
+    ref = torch.autograd.grad(loss(composite_reference(samples, density, color, BOX, positions=pos, fg=fg)),
+                              (density, color, pos, fg))
+    for a, b in zip(grads, ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-8)
+
+
+def test_float32_agrees_with_float64():
+    o, d = camera_rays(256)
+    density, color = random_grid((16, 16, 16))
+    s64 = sample_rays(o, d, BOX.double(), 48)
+    s32 = sample_rays(o.float(), d.float(), BOX, 48)
+    out64 = composite(s64, density, color, BOX, outputs=("rgb", "alpha", "depth"))
+    d32, c32 = density.detach().float().requires_grad_(), color.detach().float().requires_grad_()
+    out32 = composite(s32, d32, c32, BOX, outputs=("rgb", "alpha", "depth"))
+    for key in out64:
+        torch.testing.assert_close(out32[key].double(), out64[key].detach(), atol=2e-5, rtol=1e-4)
+    out64["rgb"].sum().backward()
+    out32["rgb"].sum().backward()
+    torch.testing.assert_close(d32.grad.double(), density.grad, atol=1e-4, rtol=1e-3)
+
+
+@pytest.mark.parametrize("scale", [1e-2, 1e2])
+def test_scaled_scene_renders_the_same_image(scale):
+    o, d = camera_rays(128)
+    density, color = random_grid((10, 10, 10))
+    base = composite(sample_rays(o, d, BOX.double(), 40), density.detach(), color.detach(), BOX,
+                     outputs=("rgb", "alpha", "depth"), activation="relu")
+    # Scaling lengths by s scales optical depth per metre by 1/s: relu density is linear in raw.
+    o_s, d_s = camera_rays(128, scale=scale)
+    dens_s = (density.detach() / scale).requires_grad_()
+    scaled = composite(sample_rays(o_s, d_s, BOX.double() * scale, 40), dens_s, color.detach(), BOX.double() * scale,
+                       outputs=("rgb", "alpha", "depth"), activation="relu")
+    torch.testing.assert_close(scaled["rgb"], base["rgb"], atol=1e-9, rtol=1e-7)
+    torch.testing.assert_close(scaled["depth"], base["depth"] * scale, atol=1e-9 * scale, rtol=1e-7)
+    scaled["alpha"].sum().backward()
+    assert torch.isfinite(dens_s.grad).all()
+
+
+def test_huge_density_is_finite_and_opaque():
+    o, d = camera_rays(64, dtype=torch.float32)
+    density = torch.full((6, 6, 6), 1e8, requires_grad=True)
+    color = torch.zeros((6, 6, 6, 3), requires_grad=True)
+    samples = sample_rays(o, d, BOX, 32)
+    pos = samples.positions.clone().requires_grad_()
+    fg = torch.ones(samples.n_samples, requires_grad=True)
+    out = composite(samples, density, color, BOX, positions=pos, fg=fg, outputs=("rgb", "alpha", "depth"),
+                    t_thresh=0.0)
+    hit = (samples.offsets[1:] > samples.offsets[:-1])
+    assert hit.any()
+    torch.testing.assert_close(out["alpha"][hit], torch.ones(int(hit.sum())))
+    torch.testing.assert_close(out["rgb"][hit], torch.full((int(hit.sum()), 3), 0.5))
+    (out["rgb"].sum() + out["alpha"].sum() + out["depth"].sum()).backward()
+    for t in (density.grad, color.grad, pos.grad, fg.grad):
+        assert torch.isfinite(t).all()
+
+
+def test_transparent_and_opaque_limits():
+    o, d = camera_rays(32)
+    samples = sample_rays(o, d, BOX.double(), 16)
+    empty = composite(samples, torch.full((5, 5, 5), -50.0, dtype=torch.float64),
+                      torch.zeros(5, 5, 5, 3, dtype=torch.float64), BOX, outputs=("rgb", "alpha", "depth"))
+    assert empty["alpha"].abs().max() < 1e-15 and empty["rgb"].abs().max() < 1e-15
+    solid = composite(samples, torch.full((5, 5, 5), 1e4, dtype=torch.float64),
+                      torch.full((5, 5, 5, 3), 50.0, dtype=torch.float64), BOX, outputs=("rgb", "alpha"))
+    hit = samples.offsets[1:] > samples.offsets[:-1]
+    torch.testing.assert_close(solid["alpha"][hit], torch.ones(int(hit.sum()), dtype=torch.float64))
+    torch.testing.assert_close(solid["rgb"][hit], torch.ones(int(hit.sum()), 3, dtype=torch.float64))
+
+
+def test_missing_and_grazing_rays():
+    o = torch.tensor([[5.0, 5.0, -3.0], [1.0, 0.0, -3.0], [1.0, 1.1, -3.0], [0.0, 0.0, -3.0]], dtype=torch.float64)
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    samples = sample_rays(o, d, BOX.double(), 8)
+    counts = (samples.offsets[1:] - samples.offsets[:-1]).tolist()
+    assert counts[0] == 0 and counts[3] == 0  # misses: beside the box, and parallel to it outside
+    assert counts[1] == 8 and counts[2] == 8  # grazing a face and an edge of the box
+    density, color = random_grid((5, 5, 5))
+    pos = samples.positions.clone().requires_grad_()
+    out = composite(samples, density, color, BOX, positions=pos, outputs=("rgb", "alpha", "depth"))
+    assert out["alpha"][0] == 0 and out["alpha"][3] == 0
+    (out["rgb"].sum() + out["alpha"].sum()).backward()
+    assert torch.isfinite(pos.grad).all() and torch.isfinite(density.grad).all()
+
+
+def test_zero_length_segments_contribute_nothing():
+    positions = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+    samples = RaySamples(
+        offsets=torch.tensor([0, 4], dtype=torch.int32), positions=positions.detach(),
+        t_mid=torch.ones(4, dtype=torch.float64), deltas=torch.zeros(4, dtype=torch.float64),
+        ray_ids=torch.zeros(4, dtype=torch.int32))
+    density = torch.full((4, 4, 4), 1e6, dtype=torch.float64, requires_grad=True)
+    color = torch.zeros(4, 4, 4, 3, dtype=torch.float64, requires_grad=True)
+    out = composite(samples, density, color, BOX, positions=positions, outputs=("rgb", "alpha", "depth"))
+    assert out["alpha"].item() == 0.0 and out["rgb"].abs().sum().item() == 0.0
+    out["alpha"].sum().backward()
+    assert torch.isfinite(positions.grad).all() and torch.isfinite(density.grad).all()
+
+
+def test_early_termination_matches_full_march():
+    o, d = camera_rays(256)
+    density, color = random_grid((12, 12, 12))
+    density = (density.detach() + 3).requires_grad_()
+    samples = sample_rays(o, d, BOX.double(), 64)
+    full = composite(samples, density, color, BOX, outputs=("rgb", "alpha", "depth"), t_thresh=0.0)
+    early = composite(samples, density, color, BOX, outputs=("rgb", "alpha", "depth"), t_thresh=1e-4)
+    for key in full:
+        torch.testing.assert_close(early[key], full[key], atol=2e-4 * (5 if key == "depth" else 1), rtol=0)
+    g_full = torch.autograd.grad(full["rgb"].sum(), density)[0]
+    g_early = torch.autograd.grad(early["rgb"].sum(), density)[0]
+    assert (g_full - g_early).abs().max() < 1e-3 * g_full.abs().max()
+
+
+def test_occupancy_skipping_keeps_the_image():
+    o, d = camera_rays(200)
+    density = torch.full((16, 16, 16), -30.0, dtype=torch.float64)
+    density[5:11, 4:12, 6:10] = 3.0
+    color = torch.randn(16, 16, 16, 3, dtype=torch.float64)
+    occ = torch.zeros(8, 8, 8, dtype=torch.uint8)
+    occ[2:6, 1:7, 2:6] = 1  # covers the dense block with a margin
+    full = sample_rays(o, d, BOX.double(), 64)
+    skip = sample_rays(o, d, BOX.double(), 64, occupancy=occ)
+    assert skip.n_samples < 0.6 * full.n_samples
+    a = composite(full, density, color, BOX, outputs=("rgb", "alpha"))
+    b = composite(skip, density, color, BOX, outputs=("rgb", "alpha"))
+    torch.testing.assert_close(a["rgb"], b["rgb"], atol=1e-9, rtol=0)
+
+
+def test_silhouette_call_needs_no_colour():
+    o, d = camera_rays(50)
+    density, color = random_grid()
+    samples = sample_rays(o, d, BOX.double(), 16)
+    with_color = composite(samples, density, color, BOX, outputs=("rgb", "alpha"))
+    alpha_only = composite(samples, density, None, BOX, outputs=("alpha",))
+    assert set(alpha_only) == {"alpha"}
+    torch.testing.assert_close(alpha_only["alpha"], with_color["alpha"])
+    alpha_only["alpha"].sum().backward()
+    assert color.grad is None and density.grad is not None
+
+
+def test_jitter_is_seeded_and_stays_in_bins():
+    o, d = camera_rays(16)
+    a = sample_rays(o, d, BOX.double(), 10, jitter=True, seed=11)
+    b = sample_rays(o, d, BOX.double(), 10, jitter=True, seed=11)
+    c = sample_rays(o, d, BOX.double(), 10, jitter=False)
+    torch.testing.assert_close(a.t_mid, b.t_mid)
+    assert (a.t_mid - c.t_mid).abs().max() <= 0.5 * c.deltas.max() + 1e-12
+    assert not torch.equal(a.t_mid, c.t_mid)
+
+
+def test_dlpack_shares_memory():
+    t = torch.randn(10, 3)
+    assert to_warp(t).ptr == t.data_ptr()
+    t64 = torch.randn(5, dtype=torch.float64, requires_grad=True)
+    to_warp(t64)
+    assert t64.grad is None  # never allocates .grad as a side effect
+
+
+def test_bad_arguments_name_the_problem():
+    o, d = camera_rays(4)
+    with pytest.raises(ValueError, match="outputs"):
+        composite(sample_rays(o, d, BOX.double(), 4), torch.zeros(3, 3, 3, dtype=torch.float64), None, BOX,
+                  outputs=("normals",))
+    with pytest.raises(ValueError, match="colour"):
+        composite(sample_rays(o, d, BOX.double(), 4), torch.zeros(3, 3, 3, dtype=torch.float64), None, BOX)
+    with pytest.raises(ValueError, match="n_samples"):
+        sample_rays(o, d, BOX.double(), 0)
+    assert math.isfinite(1.0)
