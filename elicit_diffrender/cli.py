@@ -22,10 +22,19 @@ def _rigs(args: argparse.Namespace) -> None:
     if args.kind == "ring":
         cams = ring_cameras(args.n, args.radius, args.elevation, tuple(args.look_at), args.focal, args.size, args.size)
     else:
-        cams = orbit_cameras(args.n, radius=args.radius, elevation_deg=args.elevation,
-                             look_at_point=tuple(args.look_at), focal=args.focal, width=args.size, height=args.size)
-    comment = (f"elicit {args.kind}: {args.n} cameras, radius {args.radius} m, elevation {args.elevation} deg, "
-               f"{args.size}x{args.size}, f = {args.focal} px")
+        cams = orbit_cameras(
+            args.n,
+            radius=args.radius,
+            elevation_deg=args.elevation,
+            look_at_point=tuple(args.look_at),
+            focal=args.focal,
+            width=args.size,
+            height=args.size,
+        )
+    comment = (
+        f"elicit {args.kind}: {args.n} cameras, radius {args.radius} m, elevation {args.elevation} deg, "
+        f"{args.size}x{args.size}, f = {args.focal} px"
+    )
     print(write_rig(args.out, cams, comment))
 
 

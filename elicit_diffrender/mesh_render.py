@@ -1,7 +1,7 @@
 """Mitsuba 3 renders of a posed triangle mesh from OpenCV cameras, computing only the channels asked for.
 
 Channels:
-    ``color``   surface colour (vertex colours or a UV texture), no light transport (``albedo`` AOV)
+    ``color``   surface colour (vertex colours or a UV texture), no light transport
     ``mask``    hard silhouette, 1 where a camera ray hits the mesh
     ``alpha``   anti-aliased coverage
     ``labels``  exact integer per-face labels (-1 = background), from ``prim_index`` at pixel centres
@@ -103,16 +103,33 @@ class MeshRenderer:
             raise RenderError(f"vertex_colors must be ({self.n_vertices}, 3), got {app.vertex_colors.shape}")
         if app.texture is not None and (app.uvs is None or app.uvs.shape != (self.n_vertices, 2)):
             raise RenderError(f"a texture needs per-vertex uvs of shape ({self.n_vertices}, 2)")
-        self._mesh = None
-        self._params = None
+        self._meshes: dict[bool, tuple] = {}
 
-    def _posed_mesh(self, vertices: np.ndarray):
-        """The Mitsuba mesh (built once, with its BSDF) moved to ``vertices``."""
+    def _reflectance(self) -> dict:
         mi = mitsuba()
-        if self._mesh is None:
+        app = self.appearance
+        if app.texture is not None:
+            bitmap = mi.Bitmap(np.ascontiguousarray(app.texture, dtype=np.float32))
+            return {"type": "bitmap", "bitmap": bitmap, "filter_type": "bilinear", "raw": True}
+        if app.vertex_colors is not None:
+            return {"type": "mesh_attribute", "name": "vertex_color"}
+        return {"type": "rgb", "value": [0.7, 0.7, 0.7]}
+
+    def _posed_mesh(self, vertices: np.ndarray, emissive: bool = False):
+        """The Mitsuba mesh (built once per kind) moved to ``vertices``.
+
+        The diffuse mesh serves the exact channels and ``shaded``; the emissive one carries the
+        surface colour as its radiance, so ``color`` is one direct-visibility pass (path, depth 1)
+        with exact coverage in alpha and no light transport at all.
+        """
+        mi = mitsuba()
+        if emissive not in self._meshes:
             app = self.appearance
             has_uv = app.uvs is not None
-            mesh = mi.Mesh("body", self.n_vertices, self.faces.shape[0], has_vertex_texcoords=has_uv)
+            props = mi.Properties()
+            if emissive:
+                props["emitter"] = mi.load_dict({"type": "area", "radiance": self._reflectance()})
+            mesh = mi.Mesh("body", self.n_vertices, self.faces.shape[0], props, has_vertex_texcoords=has_uv)
             params = mi.traverse(mesh)
             params["faces"] = mi.UInt32(self.faces.ravel())
             if has_uv:
@@ -120,18 +137,13 @@ class MeshRenderer:
             if app.vertex_colors is not None:
                 colors = np.ascontiguousarray(app.vertex_colors, dtype=np.float32).ravel()
                 mesh.add_attribute("vertex_color", 3, mi.Float(colors))
-            if app.texture is not None:
-                bitmap = mi.Bitmap(np.ascontiguousarray(app.texture, dtype=np.float32))
-                reflectance = {"type": "bitmap", "bitmap": bitmap, "filter_type": "bilinear", "raw": True}
-            elif app.vertex_colors is not None:
-                reflectance = {"type": "mesh_attribute", "name": "vertex_color"}
-            else:
-                reflectance = {"type": "rgb", "value": [0.7, 0.7, 0.7]}
+            reflectance = {"type": "rgb", "value": [0.0, 0.0, 0.0]} if emissive else self._reflectance()
             mesh.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": reflectance}))
-            self._mesh, self._params = mesh, params
-        self._params["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
-        self._params.update()
-        return self._mesh
+            self._meshes[emissive] = (mesh, params)
+        mesh, params = self._meshes[emissive]
+        params["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+        params.update()
+        return mesh
 
     def _render(self, mesh, cameras: Sequence[Camera], integrator: dict, spp: int, exact: bool) -> np.ndarray:
         """One batch-sensor launch; returns (N, H, W, C): RGBA (when rendered) then the AOVs."""
@@ -154,7 +166,7 @@ class MeshRenderer:
             "width": width * len(cameras),
             "height": height,
             "pixel_format": "rgba",
-            "rfilter": {"type": "box"} if exact else {"type": "gaussian"},
+            "rfilter": {"type": "box"},
         }
         sampler = (
             {"type": "stratified", "sample_count": 1, "jitter": False}
@@ -194,12 +206,11 @@ class MeshRenderer:
             raise RenderError(f"vertices must be ({self.n_vertices}, 3), got {vertices.shape}")
         if "labels" in channels and self.face_labels is None:
             raise RenderError("the 'labels' channel needs face_labels")
-        mesh = self._posed_mesh(vertices)
         out: dict[str, np.ndarray] = {}
         exact = [c for c in ("labels", "mask", "depth") if c in channels]
         if exact:
             aovs = "dd:depth" + (",pi:prim_index" if "labels" in exact else "")
-            img = self._render(mesh, cameras, {"type": "aov", "aovs": aovs}, 1, exact=True)
+            img = self._render(self._posed_mesh(vertices), cameras, {"type": "aov", "aovs": aovs}, 1, exact=True)
             dist = img[..., 0]  # an aov integrator without an inner one returns just its AOVs
             hit = dist > 0
             if "mask" in channels:
@@ -210,18 +221,16 @@ class MeshRenderer:
                 prim = np.clip(np.rint(img[..., 1]).astype(np.int64), 0, len(self.face_labels) - 1)
                 out["labels"] = np.where(hit, self.face_labels[prim], -1).astype(np.int16)
         if "color" in channels or "alpha" in channels:
+            mesh = self._posed_mesh(vertices, emissive="color" in channels)
+            img = self._render(mesh, cameras, {"type": "path", "max_depth": 1}, spp, exact=False)
+            alpha = np.clip(img[..., 3], 0.0, 1.0)
             if "color" in channels:
-                integ = {"type": "aov", "aovs": "alb:albedo", "inner": {"type": "path", "max_depth": 1}}
-                img = self._render(mesh, cameras, integ, spp, exact=False)
-                alpha = img[..., 3]
-                out["color"] = img[..., 4:7] / np.maximum(alpha, 1e-6)[..., None] * (alpha[..., None] > 0)
-            else:
-                img = self._render(mesh, cameras, {"type": "path", "max_depth": 1}, spp, exact=False)
-                alpha = img[..., 3]
+                out["color"] = img[..., :3] / np.maximum(alpha, 1e-6)[..., None] * (alpha[..., None] > 0)
             if "alpha" in channels:
-                out["alpha"] = np.clip(alpha, 0.0, 1.0)
+                out["alpha"] = alpha
         if "shaded" in channels:
-            img = self._render(mesh, cameras, {"type": "path", "max_depth": 3, "hide_emitters": True}, spp, exact=False)
+            integrator = {"type": "path", "max_depth": 3, "hide_emitters": True}
+            img = self._render(self._posed_mesh(vertices), cameras, integrator, spp, exact=False)
             out["shaded"] = np.clip(img[..., :3], 0.0, None)
             out.setdefault("alpha", np.clip(img[..., 3], 0.0, 1.0))
         return out

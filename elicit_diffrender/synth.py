@@ -237,8 +237,10 @@ class SyntheticPerson:
     offsets: np.ndarray  # (V, 3) rest-pose clothing displacement
     render_to_body: np.ndarray  # (N,) body vertex of each render vertex
     renderer: MeshRenderer
-    texture: np.ndarray
-    regions: np.ndarray
+    texture: np.ndarray  # (T, T, 3)
+    regions: np.ndarray  # (V,) garment region per body vertex
+    texel_regions: np.ndarray  # (T, T) garment region per texel
+    texel_normals: np.ndarray  # (T, T, 3) rest-pose normal per texel
 
     def clothed_vertices(self, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
         """Posed clothed vertices in render-vertex order (clothing rides the body's skinning)."""
@@ -274,7 +276,7 @@ def make_person(seed: int, texture_size: int = 1024) -> SyntheticPerson:
     tex_normal = img[..., 3:6] / np.maximum(np.linalg.norm(img[..., 3:6], axis=-1, keepdims=True), 1e-6)
     texture = paint_texture(outfit, tex_region, img[..., :3], tex_normal, np.random.default_rng(seed + 1))
     renderer = MeshRenderer(faces, MeshAppearance(uvs=uvs, texture=texture))
-    return SyntheticPerson(outfit, body, offsets, body_idx, renderer, texture, region)
+    return SyntheticPerson(outfit, body, offsets, body_idx, renderer, texture, region, tex_region, tex_normal)
 
 
 def standing_pose(body: AnnyBody) -> np.ndarray:

@@ -27,9 +27,7 @@ def grid_funcs(dtype) -> SimpleNamespace:
         base = wp.vec3i(0, 0, 0)
         frac = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         if ok:
-            base = wp.vec3i(
-                wp.min(int(f[0]), res[0] - 2), wp.min(int(f[1]), res[1] - 2), wp.min(int(f[2]), res[2] - 2)
-            )
+            base = wp.vec3i(wp.min(int(f[0]), res[0] - 2), wp.min(int(f[1]), res[1] - 2), wp.min(int(f[2]), res[2] - 2))
             frac = f - vec3(dtype(base[0]), dtype(base[1]), dtype(base[2]))
         return ok, base, frac
 

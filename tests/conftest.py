@@ -33,8 +33,12 @@ def make_smpl_file(path, n_betas: int = 10) -> dict:
     rng = np.random.default_rng(0)
     shapedirs = 0.01 * rng.standard_normal((n, 3, n_betas))
     data = {
-        "v_template": verts, "f": faces.astype(np.int64), "weights": weights, "J_regressor": regressor,
-        "shapedirs": shapedirs, "posedirs": np.zeros((n, 3, 207)),
+        "v_template": verts,
+        "f": faces.astype(np.int64),
+        "weights": weights,
+        "J_regressor": regressor,
+        "shapedirs": shapedirs,
+        "posedirs": np.zeros((n, 3, 207)),
         "kintree_table": np.array([[4294967295 if p < 0 else p for p in SMPL_PARENTS], list(range(24))]),
         "joint_names": SMPL_JOINTS,
     }

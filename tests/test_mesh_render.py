@@ -35,8 +35,9 @@ def test_labels_are_exact_per_pixel():
     rng = np.random.default_rng(0)
     labels = rng.integers(0, 7, len(mesh.faces))
     cam = look_at([0.3, 0.4, 2.0], [0, 0, 0], [0, 1, 0], focal=90.0, width=64, height=48)
-    out = MeshRenderer(np.asarray(mesh.faces), face_labels=labels).render(np.asarray(mesh.vertices), [cam],
-                                                                            ("labels", "mask", "depth"))
+    out = MeshRenderer(np.asarray(mesh.faces), face_labels=labels).render(
+        np.asarray(mesh.vertices), [cam], ("labels", "mask", "depth")
+    )
     hit_faces = first_hit_faces(np.asarray(mesh.vertices), np.asarray(mesh.faces), cam)
     expected = np.where(hit_faces >= 0, labels[np.maximum(hit_faces, 0)], -1)
     agree = (out["labels"][0] == expected).mean()
@@ -69,7 +70,8 @@ def test_color_channel_is_the_albedo():
     col = np.tile([[0.2, 0.6, 0.9]], (len(mesh.vertices), 1))
     cam = look_at([1.0, 1.0, 2.0], [0, 0, 0], [0, 1, 0], focal=60.0, width=48, height=48)
     out = MeshRenderer(np.asarray(mesh.faces), MeshAppearance(vertex_colors=col)).render(
-        np.asarray(mesh.vertices), [cam], ("color", "alpha"), spp=16)
+        np.asarray(mesh.vertices), [cam], ("color", "alpha"), spp=16
+    )
     inside = out["alpha"][0] > 0.999
     np.testing.assert_allclose(out["color"][0][inside], np.tile([0.2, 0.6, 0.9], (inside.sum(), 1)), atol=1e-4)
 

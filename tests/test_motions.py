@@ -89,8 +89,15 @@ def test_amass_and_zju_sequences(tmp_path, smpl_file):
     params = tmp_path / "new_params"
     params.mkdir()
     for f in (0, 5, 10):
-        np.save(params / f"{f}.npy", {"poses": 0.1 * rng.standard_normal((1, 72)), "Rh": rng.standard_normal((1, 3)),
-                                       "Th": rng.standard_normal((1, 3)), "shapes": np.zeros((1, 10))})
+        np.save(
+            params / f"{f}.npy",
+            {
+                "poses": 0.1 * rng.standard_normal((1, 72)),
+                "Rh": rng.standard_normal((1, 3)),
+                "Th": rng.standard_normal((1, 3)),
+                "shapes": np.zeros((1, 10)),
+            },
+        )
     z = load_motion(params, body)
     assert z.frame_ids.tolist() == [0, 5, 10] and np.all(z.pose[:, 0] == 0)
     anny_like = Motion(np.zeros((1, 104, 3)), np.zeros((1, 3)), np.zeros((1, 3)))

@@ -10,8 +10,8 @@ from elicit_diffrender.rigs import (
     default_rigs,
     place_cameras,
     read_rig,
-    ring_cameras,
     rig_xml,
+    ring_cameras,
     shipped_rig_path,
     write_rig,
 )
@@ -71,7 +71,9 @@ def test_bad_rigs_name_the_problem(tmp_path):
     (tmp_path / "bad.xml").write_text("<scene><sensor type='perspective' id='x'><film type='hdrfilm'/></sensor>")
     with pytest.raises(RigError, match="not valid XML"):
         read_rig(tmp_path / "bad.xml")
-    (tmp_path / "nofov.xml").write_text("<scene><sensor type='perspective' id='x'><film type='hdrfilm'/></sensor></scene>")
+    (tmp_path / "nofov.xml").write_text(
+        "<scene><sensor type='perspective' id='x'><film type='hdrfilm'/></sensor></scene>"
+    )
     with pytest.raises(RigError, match="fov"):
         read_rig(tmp_path / "nofov.xml")
     cam = off_centre_camera()

@@ -49,8 +49,9 @@ def test_inverse_lbs_gradients_match_finite_differences():
     pts = (0.4 * torch.randn(12, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     mats = random_transforms(3, seed=4).requires_grad_()
     weights = random_weights(3, res=(4, 4, 4), seed=5).requires_grad_()
-    assert torch.autograd.gradcheck(lambda p, m, w: inverse_lbs(p, m, w, WBOX), (pts, mats, weights),
-                                    eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradcheck(
+        lambda p, m, w: inverse_lbs(p, m, w, WBOX), (pts, mats, weights), eps=1e-6, atol=1e-6, rtol=1e-5
+    )
 
 
 def test_inverse_lbs_gradients_match_reference_autograd():
@@ -58,8 +59,10 @@ def test_inverse_lbs_gradients_match_reference_autograd():
     pts = (0.5 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     mats = random_transforms(24, seed=7).requires_grad_()
     weights = random_weights(24, res=(8, 8, 8), seed=8).requires_grad_()
-    wx, wfg = torch.randn(2000, 3, generator=gen, dtype=torch.float64), torch.randn(2000, generator=gen,
-                                                                                    dtype=torch.float64)
+    wx, wfg = (
+        torch.randn(2000, 3, generator=gen, dtype=torch.float64),
+        torch.randn(2000, generator=gen, dtype=torch.float64),
+    )
     ours = inverse_lbs(pts, mats, weights, WBOX)
     ref = inverse_lbs_reference(pts, mats, weights, WBOX)
     g1 = torch.autograd.grad((ours[0] * wx).sum() + (ours[1] * wfg).sum(), (pts, mats, weights))
@@ -107,16 +110,20 @@ def test_single_bone_is_the_exact_rigid_motion(angle):
 def test_axis_angle_tiny_angles_and_gradients():
     for angle in (0.0, 1e-12, 1e-8, 1e-4, 1e-3, 0.5, 3.0, math.pi):
         aa = torch.tensor([angle, 0.0, 0.0], dtype=torch.float64)
-        expected = torch.tensor([[1, 0, 0], [0, math.cos(angle), -math.sin(angle)],
-                                 [0, math.sin(angle), math.cos(angle)]], dtype=torch.float64)
+        expected = torch.tensor(
+            [[1, 0, 0], [0, math.cos(angle), -math.sin(angle)], [0, math.sin(angle), math.cos(angle)]],
+            dtype=torch.float64,
+        )
         torch.testing.assert_close(axis_angle_to_matrix(aa), expected, atol=1e-15, rtol=0)
     zero = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     axis_angle_to_matrix(zero).sum().backward()
     assert torch.isfinite(zero.grad).all()
-    assert torch.autograd.gradcheck(axis_angle_to_matrix, (torch.tensor([1e-5, 2e-5, -1e-5], dtype=torch.float64,
-                                                                        requires_grad=True),))
-    assert torch.autograd.gradcheck(axis_angle_to_matrix, (torch.tensor([0.3, 1.0, -2.0], dtype=torch.float64,
-                                                                        requires_grad=True),))
+    assert torch.autograd.gradcheck(
+        axis_angle_to_matrix, (torch.tensor([1e-5, 2e-5, -1e-5], dtype=torch.float64, requires_grad=True),)
+    )
+    assert torch.autograd.gradcheck(
+        axis_angle_to_matrix, (torch.tensor([0.3, 1.0, -2.0], dtype=torch.float64, requires_grad=True),)
+    )
     rot32 = axis_angle_to_matrix(torch.tensor([1e-7, 0, 0], dtype=torch.float32))
     assert torch.isfinite(rot32).all()
 
@@ -159,8 +166,10 @@ def test_forward_lbs_matches_reference_and_gradients():
     w = (w / w.sum(1, keepdim=True)).requires_grad_()
     mats = random_transforms(7, seed=10).requires_grad_()
     torch.testing.assert_close(forward_lbs(verts, idx, w, mats), forward_lbs_reference(verts, idx, w, mats))
-    assert torch.autograd.gradcheck(lambda v, ww, m: forward_lbs(v, idx[:20], ww, m),
-                                    (verts[:20].detach().requires_grad_(), w[:20].detach().requires_grad_(), mats))
+    assert torch.autograd.gradcheck(
+        lambda v, ww, m: forward_lbs(v, idx[:20], ww, m),
+        (verts[:20].detach().requires_grad_(), w[:20].detach().requires_grad_(), mats),
+    )
 
 
 def test_forward_then_inverse_round_trip():

@@ -52,19 +52,39 @@ BAD_CASES = {
     "missing subject.json": (lambda r: (r / "subject.json").unlink(), "subject.json: file not found"),
     "bad json": (lambda r: (r / "cameras.json").write_text("{"), "not valid JSON"),
     "format": (_json_edit("subject.json", lambda d: d.update(format="elicit-subject/0")), "field 'format'"),
-    "unknown camera": (_json_edit("subject.json", lambda d: d["input"].update(camera="cam99")),
-                       "unknown camera 'cam99'"),
+    "unknown camera": (
+        _json_edit("subject.json", lambda d: d["input"].update(camera="cam99")),
+        "unknown camera 'cam99'",
+    ),
     "unknown frame": (_json_edit("subject.json", lambda d: d["input"].update(frame=7)), "'input.frame'"),
-    "camera K shape": (_json_edit("cameras.json", lambda d: d["cam00"].update(K=[[1, 0], [0, 1]])),
-                       "camera 'cam00' field 'K': expected shape"),
-    "camera R": (_json_edit("cameras.json", lambda d: d["cam00"].update(R=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])),
-                 "not a rotation"),
+    "camera K shape": (
+        _json_edit("cameras.json", lambda d: d["cam00"].update(K=[[1, 0], [0, 1]])),
+        "camera 'cam00' field 'K': expected shape",
+    ),
+    "camera R": (
+        _json_edit("cameras.json", lambda d: d["cam00"].update(R=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])),
+        "not a rotation",
+    ),
     "camera width": (_json_edit("cameras.json", lambda d: d["cam00"].update(width=-4)), "'width'"),
     "missing image": (lambda r: (r / "images" / "cam01" / "000002.png").unlink(), "image not found"),
-    "nan pose": (lambda r: np.savez(r / "motion.npz", pose=np.full((4, 104, 3), np.nan, np.float32),
-                                    global_orient=np.zeros((4, 3)), transl=np.zeros((4, 3))), "'pose' contains NaN"),
-    "wrong joints": (lambda r: np.savez(r / "motion.npz", pose=np.zeros((4, 24, 3), np.float32),
-                                        global_orient=np.zeros((4, 3)), transl=np.zeros((4, 3))), "24 joints"),
+    "nan pose": (
+        lambda r: np.savez(
+            r / "motion.npz",
+            pose=np.full((4, 104, 3), np.nan, np.float32),
+            global_orient=np.zeros((4, 3)),
+            transl=np.zeros((4, 3)),
+        ),
+        "'pose' contains NaN",
+    ),
+    "wrong joints": (
+        lambda r: np.savez(
+            r / "motion.npz",
+            pose=np.zeros((4, 24, 3), np.float32),
+            global_orient=np.zeros((4, 3)),
+            transl=np.zeros((4, 3)),
+        ),
+        "24 joints",
+    ),
 }
 
 
@@ -78,7 +98,8 @@ def test_bad_subjects_name_file_and_field(subject_dir, tmp_path, case):
 def test_mask_size_must_match_the_image(subject_dir, tmp_path):
     from elicit_diffrender.io import write_image
 
-    root = edit(subject_dir, tmp_path, lambda r: write_image(r / "masks" / "cam01" / "000002.png",
-                                                             np.zeros((10, 10), np.uint8)))
+    root = edit(
+        subject_dir, tmp_path, lambda r: write_image(r / "masks" / "cam01" / "000002.png", np.zeros((10, 10), np.uint8))
+    )
     with pytest.raises(SubjectError, match="mask is 10x10, expected 40x30"):
         load_subject(root)

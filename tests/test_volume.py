@@ -14,8 +14,9 @@ BOX = torch.tensor([[-1.0, -1.2, -0.8], [1.0, 1.1, 0.9]])
 
 def camera_rays(n: int, dtype=torch.float64, seed: int = 0, scale: float = 1.0):
     gen = torch.Generator().manual_seed(seed)
-    origins = torch.tensor([0.1, -0.2, -3.0], dtype=dtype) * scale + 0.05 * scale * torch.randn(n, 3, generator=gen,
-                                                                                                  dtype=dtype)
+    origins = torch.tensor([0.1, -0.2, -3.0], dtype=dtype) * scale + 0.05 * scale * torch.randn(
+        n, 3, generator=gen, dtype=dtype
+    )
     target = (torch.rand(n, 3, generator=gen, dtype=dtype) - 0.5) * 1.6 * scale
     dirs = torch.nn.functional.normalize(target - origins, dim=1)
     return origins, dirs
@@ -34,8 +35,9 @@ def test_matches_reference_float64(activation):
     density, color = random_grid()
     samples = sample_rays(o, d, BOX.double(), 24, jitter=True, seed=3)
     fg = torch.rand(samples.n_samples, dtype=torch.float64)
-    ours = composite(samples, density, color, BOX, fg=fg, outputs=("rgb", "alpha", "depth"), activation=activation,
-                     t_thresh=0.0)
+    ours = composite(
+        samples, density, color, BOX, fg=fg, outputs=("rgb", "alpha", "depth"), activation=activation, t_thresh=0.0
+    )
     ref = composite_reference(samples, density, color, BOX, fg=fg, activation=activation)
     for key in ("rgb", "alpha", "depth"):
         torch.testing.assert_close(ours[key], ref[key], atol=1e-12, rtol=1e-10)
@@ -50,8 +52,17 @@ def test_gradients_match_finite_differences():
     fg = (0.3 + 0.7 * torch.rand(samples.n_samples, dtype=torch.float64)).requires_grad_()
 
     def fn(dens, col, pos, fgv):
-        out = composite(samples, dens, col, BOX, positions=pos, fg=fgv, outputs=("rgb", "alpha", "depth"),
-                        activation="softplus", t_thresh=0.0)
+        out = composite(
+            samples,
+            dens,
+            col,
+            BOX,
+            positions=pos,
+            fg=fgv,
+            outputs=("rgb", "alpha", "depth"),
+            activation="softplus",
+            t_thresh=0.0,
+        )
         return out["rgb"], out["alpha"], out["depth"]
 
     assert torch.autograd.gradcheck(fn, (density, color, positions, fg), eps=1e-6, atol=1e-6, rtol=1e-5)
@@ -66,14 +77,23 @@ def test_gradients_match_reference_autograd():
     weights = torch.randn(64, 5, dtype=torch.float64)
 
     def loss(out):
-        return (out["rgb"] * weights[:, :3]).sum() + (out["alpha"] * weights[:, 3]).sum() + (
-            out["depth"] * weights[:, 4]).sum()
+        return (
+            (out["rgb"] * weights[:, :3]).sum()
+            + (out["alpha"] * weights[:, 3]).sum()
+            + (out["depth"] * weights[:, 4]).sum()
+        )
 
-    grads = torch.autograd.grad(loss(composite(samples, density, color, BOX, positions=pos, fg=fg,
-                                               outputs=("rgb", "alpha", "depth"), t_thresh=0.0)),
-                                (density, color, pos, fg))
-    ref = torch.autograd.grad(loss(composite_reference(samples, density, color, BOX, positions=pos, fg=fg)),
-                              (density, color, pos, fg))
+    grads = torch.autograd.grad(
+        loss(
+            composite(
+                samples, density, color, BOX, positions=pos, fg=fg, outputs=("rgb", "alpha", "depth"), t_thresh=0.0
+            )
+        ),
+        (density, color, pos, fg),
+    )
+    ref = torch.autograd.grad(
+        loss(composite_reference(samples, density, color, BOX, positions=pos, fg=fg)), (density, color, pos, fg)
+    )
     for a, b in zip(grads, ref, strict=True):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-8)
 
@@ -97,13 +117,25 @@ def test_float32_agrees_with_float64():
 def test_scaled_scene_renders_the_same_image(scale):
     o, d = camera_rays(128)
     density, color = random_grid((10, 10, 10))
-    base = composite(sample_rays(o, d, BOX.double(), 40), density.detach(), color.detach(), BOX,
-                     outputs=("rgb", "alpha", "depth"), activation="relu")
+    base = composite(
+        sample_rays(o, d, BOX.double(), 40),
+        density.detach(),
+        color.detach(),
+        BOX,
+        outputs=("rgb", "alpha", "depth"),
+        activation="relu",
+    )
     # Scaling lengths by s scales optical depth per metre by 1/s: relu density is linear in raw.
     o_s, d_s = camera_rays(128, scale=scale)
     dens_s = (density.detach() / scale).requires_grad_()
-    scaled = composite(sample_rays(o_s, d_s, BOX.double() * scale, 40), dens_s, color.detach(), BOX.double() * scale,
-                       outputs=("rgb", "alpha", "depth"), activation="relu")
+    scaled = composite(
+        sample_rays(o_s, d_s, BOX.double() * scale, 40),
+        dens_s,
+        color.detach(),
+        BOX.double() * scale,
+        outputs=("rgb", "alpha", "depth"),
+        activation="relu",
+    )
     torch.testing.assert_close(scaled["rgb"], base["rgb"], atol=1e-9, rtol=1e-7)
     torch.testing.assert_close(scaled["depth"], base["depth"] * scale, atol=1e-9 * scale, rtol=1e-7)
     scaled["alpha"].sum().backward()
@@ -117,9 +149,8 @@ def test_huge_density_is_finite_and_opaque():
     samples = sample_rays(o, d, BOX, 32)
     pos = samples.positions.clone().requires_grad_()
     fg = torch.ones(samples.n_samples, requires_grad=True)
-    out = composite(samples, density, color, BOX, positions=pos, fg=fg, outputs=("rgb", "alpha", "depth"),
-                    t_thresh=0.0)
-    hit = (samples.offsets[1:] > samples.offsets[:-1])
+    out = composite(samples, density, color, BOX, positions=pos, fg=fg, outputs=("rgb", "alpha", "depth"), t_thresh=0.0)
+    hit = samples.offsets[1:] > samples.offsets[:-1]
     assert hit.any()
     torch.testing.assert_close(out["alpha"][hit], torch.ones(int(hit.sum())))
     torch.testing.assert_close(out["rgb"][hit], torch.full((int(hit.sum()), 3), 0.5))
@@ -131,11 +162,21 @@ def test_huge_density_is_finite_and_opaque():
 def test_transparent_and_opaque_limits():
     o, d = camera_rays(32)
     samples = sample_rays(o, d, BOX.double(), 16)
-    empty = composite(samples, torch.full((5, 5, 5), -50.0, dtype=torch.float64),
-                      torch.zeros(5, 5, 5, 3, dtype=torch.float64), BOX, outputs=("rgb", "alpha", "depth"))
+    empty = composite(
+        samples,
+        torch.full((5, 5, 5), -50.0, dtype=torch.float64),
+        torch.zeros(5, 5, 5, 3, dtype=torch.float64),
+        BOX,
+        outputs=("rgb", "alpha", "depth"),
+    )
     assert empty["alpha"].abs().max() < 1e-15 and empty["rgb"].abs().max() < 1e-15
-    solid = composite(samples, torch.full((5, 5, 5), 1e4, dtype=torch.float64),
-                      torch.full((5, 5, 5, 3), 50.0, dtype=torch.float64), BOX, outputs=("rgb", "alpha"))
+    solid = composite(
+        samples,
+        torch.full((5, 5, 5), 1e4, dtype=torch.float64),
+        torch.full((5, 5, 5, 3), 50.0, dtype=torch.float64),
+        BOX,
+        outputs=("rgb", "alpha"),
+    )
     hit = samples.offsets[1:] > samples.offsets[:-1]
     torch.testing.assert_close(solid["alpha"][hit], torch.ones(int(hit.sum()), dtype=torch.float64))
     torch.testing.assert_close(solid["rgb"][hit], torch.ones(int(hit.sum()), 3, dtype=torch.float64))
@@ -159,9 +200,12 @@ def test_missing_and_grazing_rays():
 def test_zero_length_segments_contribute_nothing():
     positions = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
     samples = RaySamples(
-        offsets=torch.tensor([0, 4], dtype=torch.int32), positions=positions.detach(),
-        t_mid=torch.ones(4, dtype=torch.float64), deltas=torch.zeros(4, dtype=torch.float64),
-        ray_ids=torch.zeros(4, dtype=torch.int32))
+        offsets=torch.tensor([0, 4], dtype=torch.int32),
+        positions=positions.detach(),
+        t_mid=torch.ones(4, dtype=torch.float64),
+        deltas=torch.zeros(4, dtype=torch.float64),
+        ray_ids=torch.zeros(4, dtype=torch.int32),
+    )
     density = torch.full((4, 4, 4), 1e6, dtype=torch.float64, requires_grad=True)
     color = torch.zeros(4, 4, 4, 3, dtype=torch.float64, requires_grad=True)
     out = composite(samples, density, color, BOX, positions=positions, outputs=("rgb", "alpha", "depth"))
@@ -232,8 +276,13 @@ def test_dlpack_shares_memory():
 def test_bad_arguments_name_the_problem():
     o, d = camera_rays(4)
     with pytest.raises(ValueError, match="outputs"):
-        composite(sample_rays(o, d, BOX.double(), 4), torch.zeros(3, 3, 3, dtype=torch.float64), None, BOX,
-                  outputs=("normals",))
+        composite(
+            sample_rays(o, d, BOX.double(), 4),
+            torch.zeros(3, 3, 3, dtype=torch.float64),
+            None,
+            BOX,
+            outputs=("normals",),
+        )
     with pytest.raises(ValueError, match="colour"):
         composite(sample_rays(o, d, BOX.double(), 4), torch.zeros(3, 3, 3, dtype=torch.float64), None, BOX)
     with pytest.raises(ValueError, match="n_samples"):
