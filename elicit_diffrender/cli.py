@@ -16,6 +16,55 @@ def _synth(args: argparse.Namespace) -> None:
     print(f"wrote synthetic subject {out} (contact sheet: {out / 'contact_sheet.png'})")
 
 
+def _fit(args: argparse.Namespace) -> None:
+    from .config import make_config
+    from .fit import fit
+    from .subject import load_subject
+
+    cfg = make_config(args.preset, args.config, args.set)
+    subject = load_subject(args.subject)
+    report = fit(subject, cfg, args.out, resume=args.resume)
+    enc = report["encoder"]["name"] if report["encoder"] else "none"
+    print(
+        f"avatar: {report['avatar']} (encoder: {enc}; perceptual: {report['perceptual']['name']}; "
+        f"{report['seconds']['total']:.0f} s)"
+    )
+
+
+def _render(args: argparse.Namespace) -> None:
+    from .animate import render_command
+
+    for path in render_command(args.run, args.motion, args.cameras, args.out, args.size, args.samples, args.fps)[-2:]:
+        print(f"wrote {path}")
+
+
+def _demo(args: argparse.Namespace) -> None:
+    from .demo import run_demo
+
+    summary = run_demo(args.out, overrides=args.set)
+    secs = summary["seconds"]
+    print(
+        f"demo done in {secs['total']:.0f} s (synth {secs['synth']:.0f} s, fit {secs['fit']:.0f} s, "
+        f"render {secs['render']:.0f} s)"
+    )
+    for key in ("turntable", "animation", "contact_sheet"):
+        print(f"  {key}: {summary[key]}")
+
+
+def _eval(args: argparse.Namespace) -> None:
+    from .evaluate import evaluate_run
+    from .subject import load_subject
+
+    m = evaluate_run(args.run, load_subject(args.subject), args.out, args.scale, args.max_views)
+    for split in ("novel_view", "novel_pose"):
+        r = m[split]
+        lp = "null" if r["lpips"] is None else f"{r['lpips']:.3f}"
+        psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
+        ssim = "n/a" if r["ssim"] is None else f"{r['ssim']:.3f}"
+        print(f"{split}: PSNR {psnr}  SSIM {ssim}  LPIPS {lp}  ({r['views']} views)")
+    print(f"wrote {args.out}")
+
+
 def _rigs(args: argparse.Namespace) -> None:
     from .rigs import orbit_cameras, ring_cameras, write_rig
 
@@ -49,6 +98,40 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=int, default=512, help="image size in pixels")
     s.add_argument("--spp", type=int, default=32, help="path-tracing samples per pixel")
     s.set_defaults(func=_synth)
+
+    f = sub.add_parser("fit", help="fit an avatar to a subject (two-stage ELICIT optimisation)")
+    f.add_argument("subject", type=Path, help="an elicit-subject/1 folder")
+    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoints, previews, avatar.pt, run.json)")
+    f.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
+    f.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
+    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key")
+    f.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    f.set_defaults(func=_fit)
+
+    v = sub.add_parser("render", help="free-view / animation video of a fitted avatar, with a contact sheet")
+    v.add_argument("run", type=Path, help="a run folder (or its avatar.pt)")
+    v.add_argument(
+        "--motion", default=None, help="built-in motion name or motion .npz (default: the subject's, or rest)"
+    )
+    v.add_argument("--cameras", default="orbit", help="orbit, ring, input, a rig .xml, or a subject folder")
+    v.add_argument("--out", type=Path, required=True, help="OUT.mp4, OUT.gif or a folder for PNG frames")
+    v.add_argument("--size", type=int, default=256, help="image size in pixels")
+    v.add_argument("--samples", type=int, default=64, help="samples per ray")
+    v.add_argument("--fps", type=float, default=30.0)
+    v.set_defaults(func=_render)
+
+    d = sub.add_parser("demo", help="synthesise the default subject, fit it (cpu-fast) and render videos")
+    d.add_argument("--out", type=Path, default=Path("elicit-demo"))
+    d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one fit config key")
+    d.set_defaults(func=_demo)
+
+    e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
+    e.add_argument("run", type=Path)
+    e.add_argument("subject", type=Path)
+    e.add_argument("--out", type=Path, required=True, help="metrics.json (grids are written beside it)")
+    e.add_argument("--scale", type=float, default=0.5, help="evaluation image scale")
+    e.add_argument("--max-views", type=int, default=None, help="evaluate at most this many views per split")
+    e.set_defaults(func=_eval)
 
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])

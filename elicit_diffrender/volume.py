@@ -285,6 +285,7 @@ def composite(
     outputs: tuple[str, ...] = ("rgb", "alpha"),
     activation: str = "softplus",
     t_thresh: float = 1e-4,
+    density_scale: float = 1.0,
 ) -> dict[str, torch.Tensor]:
     """Alpha-composite grid samples along each ray.
 
@@ -299,6 +300,8 @@ def composite(
         outputs: any of "rgb", "alpha", "depth"; only these are computed. "alpha" is always returned.
         activation: "relu" (HumanNeRF) or "softplus" for the density.
         t_thresh: stop a ray once its transmittance drops below this (0 disables early stopping).
+        density_scale: multiplies every activated density (e.g. 1 / voxel size, so that raw values
+            are optical depths per grid cell).
 
     Returns:
         {"rgb": (R, 3) premultiplied colour, "alpha": (R,), "depth": (R,) sum of weight * t}.
@@ -326,7 +329,7 @@ def composite(
         color if need_rgb else None,
         samples.offsets,
         samples.t_mid,
-        samples.deltas,
+        samples.deltas if density_scale == 1.0 else samples.deltas * density_scale,
         box.detach().cpu(),
         ACTIVATIONS[activation],
         float(t_thresh),

@@ -1,0 +1,287 @@
+"""The animatable avatar: a canonical radiance grid warped to any pose by inverse LBS.
+
+Rendering a (pose, camera): the body model gives the reduced skeleton's world frames for the pose;
+the canonical occupancy grid, forward-warped with the motion weights, bounds and fills an
+observation-space occupancy grid; rays are sampled only inside it, warped to canonical space by
+the Warp skinning kernel, and composited by the Warp ray marcher.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .body import BodyModel, load_body
+from .body.template import vertex_normals
+from .cameras import Camera
+from .errors import ElicitError
+from .field import CanonicalField, MotionWeights, grid_points
+from .io import atomic_write
+from .skinning import axis_angle_to_matrix, inverse_lbs, rigid_inverse
+from .volume import composite, sample_rays
+
+FORMAT = "elicit-avatar/1"
+
+
+class AvatarError(ElicitError):
+    """An avatar file that cannot be read."""
+
+
+def sample_grid(volume: torch.Tensor, box: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Trilinear look-up of a (C, X, Y, Z) node-aligned volume at (N, 3) points -> (N, C)."""
+    norm = 2 * (points - box[0]) / (box[1] - box[0]) - 1
+    out = F.grid_sample(
+        volume[None],
+        norm.flip(-1).reshape(1, 1, 1, -1, 3).to(volume.dtype),
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )
+    return out.reshape(volume.shape[0], -1).T
+
+
+class Avatar(nn.Module):
+    def __init__(
+        self,
+        body_spec: dict,
+        reduced_joints: list[str],
+        parents: list[int],
+        canonical_frames: torch.Tensor,
+        box: torch.Tensor,
+        voxel_size: float,
+        activation: str,
+        occupancy_cell: float,
+        weight_res: int,
+        config: dict | None = None,
+    ) -> None:
+        super().__init__()
+        self.body_spec = dict(body_spec)
+        self.reduced_joints = list(reduced_joints)
+        self.parents = list(parents)
+        self.config = dict(config or {})
+        self.register_buffer("canonical_frames", canonical_frames.to(torch.float32).clone())
+        self.field = CanonicalField(box, voxel_size, activation, occupancy_cell)
+        self.motion_weights = MotionWeights(box, len(reduced_joints), weight_res)
+        self.pose_delta = nn.Parameter(torch.zeros(len(reduced_joints), 3))
+        self.register_buffer("clothing_room", self.field.occupancy.clone())
+        self._body: BodyModel | None = None
+
+    # ---- construction ------------------------------------------------------------------------------
+    @classmethod
+    def from_body(
+        cls,
+        body: BodyModel,
+        body_spec: dict,
+        voxel_size: float = 0.016,
+        box_margin: float = 0.10,
+        activation: str = "softplus",
+        occupancy_cell: float = 0.04,
+        weight_res: int = 32,
+        config: dict | None = None,
+        body_prior: bool = True,
+    ) -> Avatar:
+        """An avatar in ``body``'s canonical pose, its motion weights splatted from the body's skinning.
+
+        With ``body_prior`` the density starts as the canonical body and empty-space skipping is
+        limited to ``box_margin`` around it; without (the no-initialisation ablation) the grid starts
+        empty and every cell of the box may be filled.
+        """
+        canon = body.pose(body.canonical_pose())
+        verts = canon.vertices
+        box = torch.tensor(np.stack([verts.min(0) - box_margin, verts.max(0) + box_margin]), dtype=torch.float32)
+        keep = [body.joint_index(n) for n in body.reduced_joints]
+        mapping = body.reduced_map()
+        parents = [-1 if body.parents[j] < 0 else int(mapping[body.parents[j]]) for j in keep]
+        avatar = cls(
+            body_spec,
+            body.reduced_joints,
+            parents,
+            torch.as_tensor(canon.bone_transforms[keep]),
+            box,
+            voxel_size,
+            activation,
+            occupancy_cell,
+            weight_res,
+            config,
+        )
+        normals = vertex_normals(verts, body.faces)
+        avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), margin=box_margin)
+        if body_prior:
+            avatar.field.init_from_body(verts, normals, allowed_margin=box_margin)
+            avatar.clothing_room.copy_(avatar.field.occupancy)
+        avatar._body = body
+        return avatar
+
+    @property
+    def body(self) -> BodyModel:
+        if self._body is None:
+            self._body = load_body(self.body_spec)
+        return self._body
+
+    # ---- poses ----------------------------------------------------------------------------------------
+    def pose_frames(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> torch.Tensor:
+        """(B, 4, 4) world frames of the reduced skeleton for one pose of the body model."""
+        posed = self.body.pose(pose, global_orient, transl)
+        return torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32)
+
+    def refined(self, frames: torch.Tensor) -> torch.Tensor:
+        """Apply the learned pose correction (a rotation per reduced joint, down the kinematic chain)."""
+        local = []
+        for b, p in enumerate(self.parents):
+            local.append(frames[b] if p < 0 else rigid_inverse(frames[p]) @ frames[b])
+        delta = torch.eye(4).repeat(len(self.parents), 1, 1)
+        delta[:, :3, :3] = axis_angle_to_matrix(self.pose_delta)
+        out: list[torch.Tensor] = []
+        for b, p in enumerate(self.parents):
+            out.append((local[b] if p < 0 else out[p] @ local[b]) @ delta[b])
+        return torch.stack(out)
+
+    def obs_to_canonical(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.canonical_frames @ rigid_inverse(frames)
+
+    # ---- rendering ----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def observation_space(self, frames: torch.Tensor, margin: float = 0.03) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells."""
+        f = self.field
+        cells = torch.as_tensor(grid_points(f.box.double(), tuple(f.occupancy.shape)), dtype=torch.float32)
+        occupied = cells[f.occupancy.bool()] if f.occupancy_cell > 0 else cells.reshape(-1, 3)
+        if occupied.shape[0] == 0:
+            occupied = cells.reshape(-1, 3)
+        step = max(f.occupancy_cell, f.voxel_size) / 4.0
+        offsets = torch.tensor([[x, y, z] for x in (-step, step) for y in (-step, step) for z in (-step, step)])
+        pts = (occupied[:, None] + offsets[None]).reshape(-1, 3)
+        w = sample_grid(self.motion_weights(), self.motion_weights.box, pts)  # (N, B)
+        w = w / w.sum(1, keepdim=True).clamp(min=1e-6)
+        can_to_obs = frames @ rigid_inverse(self.canonical_frames)
+        posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
+        pad = margin + max(f.occupancy_cell, f.voxel_size)
+        box = torch.stack([posed.min(0).values - pad, posed.max(0).values + pad])
+        if f.occupancy_cell <= 0:
+            return box, None
+        shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (box[1] - box[0]))
+        idx = ((posed - box[0]) / (box[1] - box[0]) * torch.tensor(shape)).long()
+        idx = torch.minimum(idx.clamp(min=0), torch.tensor(shape) - 1)
+        occ = torch.zeros(shape)
+        occ[idx[:, 0], idx[:, 1], idx[:, 2]] = 1.0
+        occ = F.max_pool3d(occ[None, None], 3, 1, 1)[0, 0]
+        return box, occ.to(torch.uint8)
+
+    def render_rays(
+        self,
+        origins: torch.Tensor,
+        dirs: torch.Tensor,
+        frames: torch.Tensor,
+        n_samples: int,
+        background: torch.Tensor | None = None,
+        jitter: bool = False,
+        seed: int = 0,
+        outputs: tuple[str, ...] = ("rgb", "alpha"),
+        t_thresh: float = 1e-3,
+        space: tuple[torch.Tensor, torch.Tensor | None] | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Render rays in the pose given by ``frames`` (B, 4, 4); colour is composited over ``background``."""
+        box, occ = space if space is not None else self.observation_space(frames.detach())
+        samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
+        weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
+        x_c, fg = inverse_lbs(samples.positions, self.obs_to_canonical(frames), weights, self.motion_weights.box)
+        f = self.field
+        out = composite(
+            samples,
+            f.density,
+            f.color if "rgb" in outputs else None,
+            f.box,
+            positions=x_c,
+            fg=fg,
+            outputs=outputs,
+            activation=f.activation,
+            t_thresh=t_thresh,
+            density_scale=1.0 / f.voxel_size,
+        )
+        if "rgb" in out and background is not None:
+            out["rgb"] = out["rgb"] + (1.0 - out["alpha"])[:, None] * background
+        out["n_samples"] = torch.tensor(samples.n_samples)
+        return out
+
+    @torch.no_grad()
+    def render_image(
+        self,
+        camera: Camera,
+        frames: torch.Tensor,
+        n_samples: int = 64,
+        background=(0.0, 0.0, 0.0),
+        chunk: int = 32768,
+        t_thresh: float = 1e-3,
+    ) -> dict[str, np.ndarray]:
+        """A full image: (H, W, 3) colour and (H, W) alpha."""
+        space = self.observation_space(frames)
+        origins, dirs = camera.rays()
+        bg = torch.tensor(background, dtype=torch.float32)
+        rgb, alpha = [], []
+        for s in range(0, origins.shape[0], chunk):
+            out = self.render_rays(
+                origins[s : s + chunk], dirs[s : s + chunk], frames, n_samples, bg, space=space, t_thresh=t_thresh
+            )
+            rgb.append(out["rgb"])
+            alpha.append(out["alpha"])
+        h, w = camera.height, camera.width
+        return {"rgb": torch.cat(rgb).reshape(h, w, 3).numpy(), "alpha": torch.cat(alpha).reshape(h, w).numpy()}
+
+    # ---- files ------------------------------------------------------------------------------------------
+    def state(self) -> dict:
+        return {
+            "format": FORMAT,
+            "body": self.body_spec,
+            "reduced_joints": self.reduced_joints,
+            "parents": self.parents,
+            "config": self.config,
+            "voxel_size": self.field.voxel_size,
+            "activation": self.field.activation,
+            "occupancy_cell": self.field.occupancy_cell,
+            "weight_res": int(self.motion_weights.logits.shape[1]),
+            "tensors": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+        }
+
+    def save(self, path: str | Path) -> Path:
+        data = self.state()
+        return atomic_write(path, lambda p: torch.save(data, p))
+
+    @classmethod
+    def from_state(cls, data: dict) -> Avatar:
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise AvatarError(
+                f"not an {FORMAT} avatar (format: {data.get('format') if isinstance(data, dict) else None})"
+            )
+        t = data["tensors"]
+        avatar = cls(
+            data["body"],
+            data["reduced_joints"],
+            data["parents"],
+            t["canonical_frames"],
+            t["field.box"],
+            data["voxel_size"],
+            data["activation"],
+            data["occupancy_cell"],
+            data["weight_res"],
+            data["config"],
+        )
+        avatar.load_state_dict(t)
+        return avatar
+
+    @classmethod
+    def load(cls, path: str | Path) -> Avatar:
+        path = Path(path)
+        if not path.is_file():
+            raise AvatarError(f"{path}: avatar file not found")
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises several types for corrupt files
+            raise AvatarError(f"{path}: unreadable avatar file ({exc})") from exc
+        try:
+            return cls.from_state(data)
+        except AvatarError as exc:
+            raise AvatarError(f"{path}: {exc}") from None

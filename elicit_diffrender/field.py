@@ -1,0 +1,155 @@
+"""The avatar's learnable volumes: the canonical radiance grid and the motion-weight volume.
+
+Both are node-aligned grids over boxes in canonical space. Density is stored as raw values in
+units of optical depth per grid cell (the renderer scales by 1 / voxel size); colour as logits.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+from torch import nn
+
+EMPTY_DENSITY = -6.0  # softplus(-6) = 0.0025 per cell: transparent but still trainable
+
+
+def grid_shape(box: torch.Tensor, voxel: float) -> tuple[int, int, int]:
+    ext = (box[1] - box[0]).tolist()
+    return tuple(max(2, math.ceil(e / voxel) + 1) for e in ext)
+
+
+def grid_points(box: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """World positions of every node, (X, Y, Z, 3)."""
+    axes = [torch.linspace(float(box[0, a]), float(box[1, a]), shape[a], dtype=torch.float64) for a in range(3)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+
+
+def signed_distance(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, k: int = 4) -> np.ndarray:
+    """Approximate signed distance to a closed mesh: distance to the nearest vertices, signed by their normals."""
+    tree = cKDTree(vertices)
+    dist, idx = tree.query(points, k=k)
+    sign = np.sign(np.einsum("pkc,pkc->pk", points[:, None] - vertices[idx], normals[idx]).mean(1))
+    return dist[:, 0] * np.where(sign == 0, 1.0, sign)
+
+
+class CanonicalField(nn.Module):
+    """Density and colour on a grid over ``box`` with an occupancy grid for empty-space skipping."""
+
+    def __init__(
+        self, box: torch.Tensor, voxel_size: float, activation: str = "softplus", occupancy_cell: float = 0.04
+    ) -> None:
+        super().__init__()
+        self.register_buffer("box", box.to(torch.float32).clone())
+        self.voxel_size = float(voxel_size)
+        self.activation = activation
+        self.occupancy_cell = float(occupancy_cell)
+        shape = grid_shape(self.box, voxel_size)
+        self.density = nn.Parameter(torch.full(shape, EMPTY_DENSITY))
+        self.color = nn.Parameter(torch.zeros(*shape, 3))
+        occ_shape = grid_shape(self.box, occupancy_cell) if occupancy_cell > 0 else (1, 1, 1)
+        self.register_buffer("occupancy", torch.ones(occ_shape, dtype=torch.uint8))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.density.shape)
+
+    def activated_density(self) -> torch.Tensor:
+        raw = self.density.detach()
+        return F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
+
+    def init_from_body(
+        self, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, allowed_margin: float | None = None
+    ) -> None:
+        """Start from the body prior: opaque inside the canonical mesh, empty outside.
+
+        ``allowed_margin`` limits the occupancy grid to points within that distance of the body
+        (clothing room), so rays skip the rest of the box from the first step on.
+        """
+        pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
+        sdf = signed_distance(pts, vertices, normals).reshape(self.shape)
+        # A smooth step from `inside` (one voxel inside the surface) to empty (one voxel outside).
+        t = np.clip(0.5 - sdf / (2 * self.voxel_size), 0.0, 1.0)
+        with torch.no_grad():
+            self.density.copy_(torch.as_tensor(EMPTY_DENSITY + t * (inside - EMPTY_DENSITY), dtype=torch.float32))
+        if allowed_margin is not None and self.occupancy_cell > 0:
+            cells = grid_points(self.box.double(), tuple(self.occupancy.shape)).reshape(-1, 3).numpy()
+            d = signed_distance(cells, vertices, normals).reshape(self.occupancy.shape)
+            self.occupancy.copy_(torch.as_tensor(d < allowed_margin + self.occupancy_cell, dtype=torch.uint8))
+
+    @torch.no_grad()
+    def set_colors_by_part(self, vertices: np.ndarray, vertex_parts: np.ndarray, part_colors: np.ndarray) -> None:
+        """Colour every cell with the colour of the body part of its nearest body vertex."""
+        pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
+        _, idx = cKDTree(vertices).query(pts)
+        rgb = np.clip(part_colors[vertex_parts[idx]], 0.02, 0.98)
+        logits = np.log(rgb / (1 - rgb)).reshape(*self.shape, 3)
+        self.color.copy_(torch.as_tensor(logits, dtype=torch.float32))
+
+    @torch.no_grad()
+    def update_occupancy(self, threshold: float = 0.01, keep: torch.Tensor | None = None) -> float:
+        """Mark coarse cells whose max density (per cell) exceeds ``threshold``, dilated by one cell.
+
+        ``keep`` (same shape as the occupancy grid) stays occupied regardless (the clothing room).
+        Returns the occupied fraction.
+        """
+        if self.occupancy_cell <= 0:
+            return 1.0
+        sigma = self.activated_density()[None, None]
+        occ = (
+            F.interpolate(
+                F.max_pool3d(sigma, 3, 1, 1), size=tuple(self.occupancy.shape), mode="trilinear", align_corners=True
+            )[0, 0]
+            > threshold
+        )
+        occ = F.max_pool3d(occ[None, None].float(), 3, 1, 1)[0, 0] > 0
+        if keep is not None:
+            occ |= keep.bool()
+        self.occupancy.copy_(occ.to(torch.uint8))
+        return float(occ.float().mean())
+
+    def tv_loss(self, block: int = 40, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Total variation (mean squared neighbour difference, density and colour) on a random
+        ``block``^3 sub-grid: an unbiased, cheap estimate of the whole grid's."""
+        start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
+        sl = tuple(slice(s, s + block) for s in start)
+        loss = torch.zeros((), device=self.density.device)
+        for grid in (self.density[sl], self.color[sl]):
+            for axis in range(3):
+                loss = loss + torch.diff(grid, dim=axis).pow(2).mean()
+        return loss
+
+
+class MotionWeights(nn.Module):
+    """Skinning weights over canonical space: softmax over (bones + background) logits on a grid."""
+
+    def __init__(self, box: torch.Tensor, n_bones: int, resolution: int = 32) -> None:
+        super().__init__()
+        self.register_buffer("box", box.to(torch.float32).clone())
+        self.n_bones = n_bones
+        self.logits = nn.Parameter(torch.zeros(n_bones + 1, resolution, resolution, resolution))
+
+    def init_from_body(
+        self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, margin: float = 0.10
+    ) -> None:
+        """Splat the body's (reduced) skinning weights: inverse-distance blend of the nearest vertices;
+        the background takes over beyond ``margin`` outside the surface."""
+        shape = tuple(self.logits.shape[1:])
+        pts = grid_points(self.box.double(), shape).reshape(-1, 3).numpy()
+        tree = cKDTree(vertices)
+        dist, idx = tree.query(pts, k=8)
+        w = 1.0 / np.maximum(dist, 1e-3) ** 2
+        bones = np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
+        sdf = signed_distance(pts, vertices, normals)
+        fg = 1.0 / (1.0 + np.exp((sdf - margin) / 0.02))
+        probs = np.concatenate([bones * fg[:, None], (1.0 - fg)[:, None]], 1)
+        logits = np.log(np.maximum(probs, 1e-8)).T.reshape(self.n_bones + 1, *shape)
+        with torch.no_grad():
+            self.logits.copy_(torch.as_tensor(logits, dtype=torch.float32))
+
+    def forward(self) -> torch.Tensor:
+        """(B, R, R, R) bone weights (the background channel dropped, as HumanNeRF)."""
+        return torch.softmax(self.logits, 0)[:-1].contiguous()

@@ -1,0 +1,165 @@
+"""The fit: crop cameras, avatar files, the empty-render guard, a tiny end-to-end fit, kill and resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from elicit_diffrender.avatar import Avatar, AvatarError
+from elicit_diffrender.config import ConfigError, make_config
+from elicit_diffrender.evaluate import psnr
+from elicit_diffrender.fit import Fitter, crop_image
+from elicit_diffrender.subject import load_subject
+from elicit_diffrender.synth import synthesize
+
+TINY = [
+    "init_steps=30",
+    "steps=40",
+    "crop_size=32",
+    "label_size=96",
+    "voxel_size=0.03",
+    "samples_per_ray=24",
+    "ring_cameras=8",
+    "occupancy_cell=0.06",
+    "preview_every=1000",
+    "checkpoint_every=10",
+    "weight_grid=16",
+]
+
+
+@pytest.fixture(scope="module")
+def tiny_subject(tmp_path_factory):
+    root = synthesize(5, tmp_path_factory.mktemp("fit") / "s", size=96, spp=4, n_cameras=4, texture_size=256)
+    return load_subject(root)
+
+
+@pytest.fixture(scope="module")
+def tiny_avatar(tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY)
+    return Avatar.from_body(
+        tiny_subject.body, tiny_subject.body_spec, cfg.voxel_size, occupancy_cell=0.06, weight_res=16
+    )
+
+
+def test_crop_camera_renders_exactly_the_crop(tiny_subject, tiny_avatar):
+    cam = tiny_subject.cameras["cam00"]
+    frames = tiny_avatar.pose_frames(*tiny_subject.motion.frame(0))
+    full = tiny_avatar.render_image(cam, frames, 32)
+    x0, y0, side = 30, 20, 40
+    crop = tiny_avatar.render_image(cam.crop(x0, y0, side, side, side), frames, 32)
+    np.testing.assert_allclose(crop["rgb"], full["rgb"][y0 : y0 + side, x0 : x0 + side], atol=1e-5)
+    # And the image-side crop helper samples the same window.
+    img = torch.as_tensor(full["rgb"]).permute(2, 0, 1)
+    np.testing.assert_allclose(
+        crop_image(img, (x0, y0, side), side).permute(1, 2, 0).numpy(),
+        full["rgb"][y0 : y0 + side, x0 : x0 + side],
+        atol=1e-5,
+    )
+
+
+def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
+    path = tiny_avatar.save(tmp_path / "a.pt")
+    back = Avatar.load(path)
+    cam = tiny_subject.cameras["cam01"].scaled(0.5)
+    frames = back.pose_frames(*tiny_subject.motion.frame(2))
+    np.testing.assert_array_equal(
+        back.render_image(cam, frames, 24)["rgb"], tiny_avatar.render_image(cam, frames, 24)["rgb"]
+    )
+    data = torch.load(path, weights_only=True)
+    assert data["format"] == "elicit-avatar/1" and data["body"]["model"] == "anny"
+    (tmp_path / "bad.pt").write_bytes(b"junk")
+    with pytest.raises(AvatarError, match="unreadable"):
+        Avatar.load(tmp_path / "bad.pt")
+
+
+def test_config_presets_files_and_overrides(tmp_path):
+    cfg = make_config("paper")
+    assert cfg.steps == 20000 and cfg.init_steps == 15000 and cfg.crop_size == 224 and cfg.clip_model == "ViT-L-14"
+    (tmp_path / "c.toml").write_text('steps = 12\nencoder = "random-features"\n')
+    cfg = make_config("cpu-fast", tmp_path / "c.toml", ["lr=0.5", "refine_input_pose=true"])
+    assert cfg.steps == 12 and cfg.encoder == "random-features" and cfg.lr == 0.5 and cfg.refine_input_pose
+    for bad, message in (
+        (["nope=1"], "unknown config key"),
+        (["steps=many"], "expected a int"),
+        (["ablation=wild"], "ablation must be"),
+        (["steps"], "key=value"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            make_config("cpu-fast", None, bad)
+    with pytest.raises(ConfigError, match="unknown preset"):
+        make_config("fast")
+
+
+def test_empty_render_guard_restores_and_lowers_the_lr(tmp_path, tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY)
+    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
+    fitter.prepare()
+    good = fitter.snapshot()
+    assert fitter.input_coverage() > 0.5
+    with torch.no_grad():
+        fitter.avatar.field.density.fill_(-40.0)  # the avatar went empty
+    assert fitter.input_coverage() < 0.01
+    fitter.guard(good)
+    assert fitter.input_coverage() > 0.5 and fitter.lr_scale == 0.5
+    assert len(fitter.stats.recoveries) == 1
+
+
+def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY + ["p_novel=0.3"])
+    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
+    fitter.prepare()
+    cam = fitter.input_cam
+    target = fitter.input_image.permute(1, 2, 0).numpy()
+    mask = np.ones(target.shape[:2], bool)
+
+    def input_psnr():
+        frames = fitter.frames_for(tiny_subject.input_index)
+        return psnr(fitter.avatar.render_image(cam, frames, cfg.samples_per_ray)["rgb"], target, mask)
+
+    fitter.run_stage(1, cfg.init_steps)
+    after_init = input_psnr()  # the template-textured body
+    fitter.run_stage(2, 150)
+    after_fit = input_psnr()
+    assert after_fit > after_init + 2.0, (after_init, after_fit)
+
+
+def test_kill_and_resume(tmp_path, tiny_subject):
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "elicit_diffrender.cli", "fit", str(tiny_subject.root), "--out", str(run)]
+    cmd += [x for kv in TINY + ["steps=400"] for x in ("--set", kv)]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    step = 0
+    while time.time() < deadline and proc.poll() is None:
+        ckpt = run / "checkpoint.pt"
+        if ckpt.is_file():
+            try:
+                data = torch.load(ckpt, weights_only=False)
+                if data["stage"] == 2 and data["step"] >= 20:
+                    step = data["step"]
+                    break
+            except Exception:  # caught mid-rename on a slow disk; try again
+                pass
+        time.sleep(0.5)
+    assert step >= 20, "no stage-2 checkpoint appeared"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (run / "avatar.pt").exists()
+    # A second start without --resume refuses to overwrite; with it, it continues from the checkpoint.
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    assert again.returncode == 2 and "--resume" in again.stderr
+    done = subprocess.run(cmd + ["--resume"], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    log = (run / "log.txt").read_text()
+    resumed = [line for line in log.splitlines() if "resumed from" in line]
+    assert resumed and int(resumed[-1].rsplit("step", 1)[1]) >= step
+    report = json.loads((run / "run.json").read_text())
+    assert report["encoder"]["kind"] == "random-features" and "weights-free" in report["encoder"]["name"]
+    assert (run / "avatar.pt").is_file()
