@@ -46,27 +46,45 @@ def resolve_cameras(spec: str, size: int) -> tuple[list[Camera], Motion | None]:
     raise AnimateError(f"--cameras {spec!r}: expected orbit, ring, input, a rig .xml file or a subject folder")
 
 
-def load_avatar(run: str | Path) -> Avatar:
+def load_avatar(run: str | Path):
+    """The fitted model of a run folder (or its ``avatar.pt``): an :class:`Avatar`, or the explicit-texture
+    baseline's :class:`TexturedBody`. Both render with ``render_pose(camera, pose, orient, transl)``."""
+    import torch
+
+    from .avatar import AvatarError
+    from .baseline import FORMAT as TEXTURED
+    from .baseline import TexturedBody
+
     path = Path(run)
-    return Avatar.load(path / "avatar.pt" if path.is_dir() else path)
+    path = path / "avatar.pt" if path.is_dir() else path
+    if not path.is_file():
+        raise AvatarError(f"{path}: avatar file not found (did the fit finish?)")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise AvatarError(f"{path}: unreadable avatar file ({exc})") from exc
+    if isinstance(data, dict) and data.get("format") == TEXTURED:
+        return TexturedBody.from_state(data)
+    try:
+        return Avatar.from_state(data)
+    except AvatarError as exc:
+        raise AvatarError(f"{path}: {exc}") from None
 
 
 def render_sequence(
-    avatar: Avatar,
+    avatar,
     cameras: list[Camera],
     motion: Motion,
     n_samples: int = 64,
     n_frames: int | None = None,
     desc: str = "render",
 ) -> list[np.ndarray]:
-    """RGB frames (H, W, 3) in [0, 1] on black."""
+    """RGB frames (H, W, 3) in [0, 1] on black: frame k is pose k mod F from camera k mod C."""
     n = n_frames or max(len(cameras), len(motion))
-    frames, cache = [], {}
+    frames = []
     for k in tqdm(range(n), desc=desc, unit="frame", leave=False):
-        f = k % len(motion)
-        if f not in cache:
-            cache[f] = avatar.pose_frames(*motion.frame(f))
-        frames.append(avatar.render_image(cameras[k % len(cameras)], cache[f], n_samples)["rgb"])
+        camera = cameras[k % len(cameras)]
+        frames.append(avatar.render_pose(camera, *motion.frame(k % len(motion)), n_samples)["rgb"])
     return frames
 
 

@@ -231,6 +231,12 @@ class Avatar(nn.Module):
         h, w = camera.height, camera.width
         return {"rgb": torch.cat(rgb).reshape(h, w, 3).numpy(), "alpha": torch.cat(alpha).reshape(h, w).numpy()}
 
+    def render_pose(
+        self, camera: Camera, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray, n_samples: int = 64
+    ) -> dict[str, np.ndarray]:
+        """A full image of the avatar in a body-model pose (the interface shared with the baselines)."""
+        return self.render_image(camera, self.pose_frames(pose, orient, transl), n_samples)
+
     # ---- files ------------------------------------------------------------------------------------------
     def state(self) -> dict:
         return {

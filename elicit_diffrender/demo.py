@@ -49,8 +49,7 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     avatar = load_avatar(run_dir)
     orbit = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("orbit"))]
     ring = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("ring"))]
-    input_pose = subject.motion.select([subject.input_index])
-    turntable = render_sequence(avatar, orbit, input_pose, desc="turntable")
+    turntable = render_sequence(avatar, orbit, subject.motion.select([subject.input_index]), desc="turntable")
     write_video(out / "turntable.mp4", turntable)
     novel = builtin_motion(NOVEL_MOTION, avatar.body)
     front = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("input"))]
@@ -64,9 +63,9 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     target = subject.image(subject.input_camera, subject.input_frame)
     step = max(1, round(1 / scale))
     tiles = [target[::step, ::step]]
-    frames = avatar.pose_frames(*subject.motion.frame(subject.input_index))
+    input_pose = subject.motion.frame(subject.input_index)
     for cam in (front[0], ring[len(ring) // 4], ring[len(ring) // 2]):
-        tiles.append(avatar.render_image(cam, frames)["rgb"])
+        tiles.append(avatar.render_pose(cam, *input_pose)["rgb"])
     tiles.append(animation[len(animation) // 2])
     sheet = contact_sheet(
         tiles, ["input", "front", "side", "back", f"novel pose ({NOVEL_MOTION})"], out / "contact_sheet.png"

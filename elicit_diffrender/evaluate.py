@@ -159,12 +159,9 @@ def evaluate_run(
 
     run = Path(run)
     avatar = load_avatar(run)
-    cache: dict[int, object] = {}
 
     def render(camera: Camera, index: int) -> np.ndarray:
-        if index not in cache:
-            cache[index] = avatar.pose_frames(*subject.motion.frame(index))
-        return avatar.render_image(camera, cache[index], n_samples)["rgb"]
+        return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)["rgb"]
 
     out = Path(out)
     metrics = evaluate(subject, render, out.parent, scale, max_views)
