@@ -65,6 +65,18 @@ def _eval(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
+def _prepare(args: argparse.Namespace) -> None:
+    from .prepare import prepare
+
+    r = prepare(args.photo, args.out, args.mask, args.params, args.focal, args.motion)
+    kp = r.get("keypoint_error_px")
+    kp_text = f", keypoint error {kp['median']:.1f} px median" if kp else ""
+    print(
+        f"wrote subject {args.out}: silhouette IoU {r['silhouette_iou']:.3f}{kp_text}, {r['seconds']:.0f} s "
+        f"(overlay: {args.out / 'overlay.png'})"
+    )
+
+
 def _rigs(args: argparse.Namespace) -> None:
     from .rigs import orbit_cameras, ring_cameras, write_rig
 
@@ -132,6 +144,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scale", type=float, default=0.5, help="evaluation image scale")
     e.add_argument("--max-views", type=int, default=None, help="evaluate at most this many views per split")
     e.set_defaults(func=_eval)
+
+    q = sub.add_parser("prepare", help="turn one photo into a subject: mask, camera and an Anny body fit")
+    q.add_argument("photo", type=Path)
+    q.add_argument("--out", type=Path, required=True)
+    q.add_argument("--mask", type=Path, default=None, help="8-bit person mask (> 127 is the person)")
+    q.add_argument("--params", type=Path, default=None, help="ELICIT/CLIFF gt_params.npz (focal_l, pred_joints)")
+    q.add_argument("--focal", type=float, default=None, help="focal length in pixels")
+    q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
+    q.set_defaults(func=_prepare)
 
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])

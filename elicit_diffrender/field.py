@@ -111,16 +111,24 @@ class CanonicalField(nn.Module):
         self.occupancy.copy_(occ.to(torch.uint8))
         return float(occ.float().mean())
 
-    def tv_loss(self, block: int = 40, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Total variation (mean squared neighbour difference, density and colour) on a random
-        ``block``^3 sub-grid: an unbiased, cheap estimate of the whole grid's."""
+    def random_block(self, block: int = 40, generator: torch.Generator | None = None) -> tuple[slice, ...]:
+        """A random ``block``^3 sub-grid, for cheap unbiased estimates of whole-grid regularisers."""
         start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
-        sl = tuple(slice(s, s + block) for s in start)
+        return tuple(slice(s, s + block) for s in start)
+
+    def tv_loss(self, block: tuple[slice, ...]) -> torch.Tensor:
+        """Total variation: mean squared neighbour difference of density and colour in ``block``."""
         loss = torch.zeros((), device=self.density.device)
-        for grid in (self.density[sl], self.color[sl]):
+        for grid in (self.density[block], self.color[block]):
             for axis in range(3):
                 loss = loss + torch.diff(grid, dim=axis).pow(2).mean()
         return loss
+
+    def sparsity_loss(self, block: tuple[slice, ...], where: torch.Tensor) -> torch.Tensor:
+        """Cauchy sparsity ``log(1 + 2 sigma^2)`` of the density in ``block``, counted where ``where`` is 1."""
+        raw = self.density[block]
+        sigma = F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
+        return (torch.log1p(2 * sigma**2) * where[block]).mean()
 
 
 class MotionWeights(nn.Module):

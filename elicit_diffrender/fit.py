@@ -138,6 +138,7 @@ class Fitter:
         )
         self.avatar.motion_weights.logits.requires_grad_(cfg.learn_motion_weights)
         self.avatar.pose_delta.requires_grad_(cfg.refine_input_pose)
+        self.outside_body = self.outside_body_mask()
         self.frames = self.training_frames()
         self.pose_frames = {f: self.avatar.pose_frames(*subject.motion.frame(f)) for f in self.frames}
         self.ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
@@ -176,6 +177,17 @@ class Fitter:
             self.perceptual.name,
             f" [{self.perceptual.reason}]" if self.perceptual.reason else "",
         )
+
+    def outside_body_mask(self) -> torch.Tensor:
+        """1 for grid cells more than one cell outside the canonical body (where density is clothing)."""
+        from .body.template import vertex_normals
+        from .field import grid_points, signed_distance
+
+        canon = self.body.pose(self.body.canonical_pose())
+        field = self.avatar.field
+        pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
+        sdf = signed_distance(pts, canon.vertices, vertex_normals(canon.vertices, self.body.faces))
+        return torch.as_tensor((sdf > field.voxel_size).reshape(field.shape), dtype=torch.float32)
 
     def prior_renderer(self) -> MeshRenderer:
         if not hasattr(self, "_prior_renderer"):
@@ -506,8 +518,11 @@ class Fitter:
             if result is None:
                 continue
             loss, terms = result
+            block = self.avatar.field.random_block()
             if cfg.w_tv > 0:
-                loss = loss + cfg.w_tv * self.avatar.field.tv_loss()
+                loss = loss + cfg.w_tv * self.avatar.field.tv_loss(block)
+            if stage == 2 and cfg.w_sparsity > 0:
+                loss = loss + cfg.w_sparsity * self.avatar.field.sparsity_loss(block, self.outside_body)
             self.opt.zero_grad(set_to_none=True)
             if not torch.isfinite(loss):
                 good = self.guard(good)

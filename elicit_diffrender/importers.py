@@ -126,7 +126,7 @@ def import_elicit_wild(
         in_pose, in_orient, in_transl = pose, np.zeros(3), transl
         info["body_fit"] = "CLIFF SMPL parameters"
     elif "pred_joints" in params:
-        from .body.fit_joints import fit_anny_to_smpl_joints
+        from .body.fitting import fit_anny_to_smpl_joints
 
         joints = _field(params, "pred_joints", (params["pred_joints"].size // 3, 3), params_path)
         fit = fit_anny_to_smpl_joints(joints[:24])

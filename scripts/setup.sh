@@ -57,6 +57,15 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$digest" ] || ! "$VENV/bin/pytho
   echo "$digest" >"$stamp"
 fi
 
-# 5. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
+# 5. MediaPipe (masks and keypoints for `elicit prepare`) in its own environment: mediapipe==0.10.21 is
+#    the last release whose legacy solutions bundle their models, and it pins numpy<2.
+if [ "${ELICIT_NO_MEDIAPIPE:-0}" != 1 ] && [ ! -x "$ROOT/.venv-mediapipe/bin/python" -o ! -f "$ROOT/.venv-mediapipe/.ok" ]; then
+  log "creating .venv-mediapipe (mediapipe==0.10.21)"
+  "$PY" -m venv "$ROOT/.venv-mediapipe"
+  "$ROOT/.venv-mediapipe/bin/python" -m pip install -q --disable-pip-version-check "mediapipe==0.10.21" "numpy<2" pillow
+  "$ROOT/.venv-mediapipe/bin/python" -c "import mediapipe" && touch "$ROOT/.venv-mediapipe/.ok"
+fi
+
+# 6. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
 "$VENV/bin/python" -m elicit_diffrender.body.anny_cache
 log "ready: $VENV"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from elicit_diffrender.body.fit_joints import SMPL_TO_ANNY
+from elicit_diffrender.body.fitting import SMPL_TO_ANNY
 from elicit_diffrender.importers import SourceImportError, import_elicit_wild, import_zju
 from elicit_diffrender.io import write_image
 from elicit_diffrender.subject import load_subject

@@ -1,0 +1,346 @@
+"""Fit Anny (phenotype, pose, placement) to observations: 3D SMPL joints, or a photo's 2D keypoints
+and silhouette.
+
+Both fits share one differentiable Anny forward (:class:`AnnyFit`). The 3D fit matches Anny's joints
+to the SMPL joints they correspond to (CLIFF's ``pred_joints``). The image fit matches projected
+joints and mesh points to MediaPipe's 33 landmarks (``KEYPOINTS``) and the mesh to the person mask
+(every vertex inside the mask; every mask pixel near some vertex), coarse to fine, from two starts
+(facing the camera or away) so that a mirrored body is escaped. Priors keep the pose near rest
+(and knees and elbows bending the right way) and the phenotype near average.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from ..skinning import axis_angle_to_matrix, matrix_to_axis_angle
+from .anny_model import ANNY_TO_WORLD, AnnyBody, anny_model
+
+# SMPL joint index -> Anny joint, for the joints whose anatomy agrees between the two rigs.
+SMPL_TO_ANNY = {
+    0: "root", 1: "upperleg01.L", 2: "upperleg01.R", 4: "lowerleg01.L", 5: "lowerleg01.R", 7: "foot.L",
+    8: "foot.R", 12: "neck01", 15: "head", 16: "upperarm01.L", 17: "upperarm01.R", 18: "lowerarm01.L",
+    19: "lowerarm01.R", 20: "wrist.L", 21: "wrist.R",
+}  # fmt: skip
+TORSO_SMPL = (0, 1, 2, 12, 16, 17)
+FREE_JOINTS = (
+    "spine04",
+    "spine03",
+    "spine01",
+    "neck01",
+    "head",
+    "clavicle.L",
+    "clavicle.R",
+    "upperarm01.L",
+    "upperarm01.R",
+    "lowerarm01.L",
+    "lowerarm01.R",
+    "upperleg01.L",
+    "upperleg01.R",
+    "lowerleg01.L",
+    "lowerleg01.R",
+    "foot.L",
+    "foot.R",
+)
+
+# MediaPipe pose landmark index -> ("joint", Anny joint) or ("vertex", selector on the rest mesh).
+KEYPOINTS = {
+    0: ("vertex", "nose"), 2: ("joint", "eye.L"), 5: ("joint", "eye.R"), 7: ("vertex", "ear.L"),
+    8: ("vertex", "ear.R"), 11: ("joint", "upperarm01.L"), 12: ("joint", "upperarm01.R"),
+    13: ("joint", "lowerarm01.L"), 14: ("joint", "lowerarm01.R"), 15: ("joint", "wrist.L"),
+    16: ("joint", "wrist.R"), 23: ("joint", "upperleg01.L"), 24: ("joint", "upperleg01.R"),
+    25: ("joint", "lowerleg01.L"), 26: ("joint", "lowerleg01.R"), 27: ("joint", "foot.L"), 28: ("joint", "foot.R"),
+    29: ("vertex", "heel.L"), 30: ("vertex", "heel.R"), 31: ("vertex", "toe.L"), 32: ("vertex", "toe.R"),
+}  # fmt: skip
+TORSO_KEYPOINTS = (11, 12, 23, 24)
+# Bending the wrong way costs: the knee's flexion axis is +x (world), the elbow's -x in the rest frame.
+HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lowerarm01.R": -1.0}
+
+
+def procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising |R src + t - dst| (no scale, no reflection)."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((dst - cd).T @ (src - cs))
+    d = np.sign(np.linalg.det(u @ vt))
+    rot = u @ np.diag([1.0, 1.0, d]) @ vt
+    return rot, cd - rot @ cs
+
+
+def select_vertices(rest: np.ndarray, parts: np.ndarray, head_part: int, shin_parts: tuple[int, int]) -> dict:
+    """Rest-mesh vertex indices for the landmarks that are not joints (world frame: +y up, +z front)."""
+    head = np.nonzero(parts == head_part)[0]
+    hv = rest[head]
+    centre_y = hv[:, 1].min() + 0.55 * np.ptp(hv[:, 1])
+    band = np.abs(hv[:, 1] - centre_y) < 0.04
+    out = {
+        "nose": int(head[np.argmax(hv[:, 2] - 5 * np.abs(hv[:, 0]))]),
+        "ear.L": int(head[band][np.argmax(hv[band, 0])]),
+        "ear.R": int(head[band][np.argmin(hv[band, 0])]),
+    }
+    for side, part in zip(("L", "R"), shin_parts, strict=True):
+        idx = np.nonzero(parts == part)[0]
+        v = rest[idx]
+        low = v[:, 1] < v[:, 1].min() + 0.04
+        out[f"heel.{side}"] = int(idx[low][np.argmin(v[low, 2])])
+        out[f"toe.{side}"] = int(idx[low][np.argmax(v[low, 2])])
+    return out
+
+
+class AnnyFit(torch.nn.Module):
+    """Differentiable Anny: free-joint rotations, phenotype logits and a global rigid placement."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        model = anny_model()
+        self.model = model
+        self.names = list(model.bone_labels)
+        self.labels = list(model.phenotype_labels)
+        self.free = torch.tensor([self.names.index(n) for n in FREE_JOINTS])
+        self.rotvecs = torch.nn.Parameter(torch.zeros(len(FREE_JOINTS), 3, dtype=torch.float64))
+        self.pheno = torch.nn.Parameter(torch.zeros(len(self.labels), dtype=torch.float64))
+        self.g_rot = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
+        self.g_t = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
+        a4 = torch.eye(4, dtype=torch.float64)
+        a4[:3, :3] = torch.as_tensor(ANNY_TO_WORLD)
+        self.register_buffer("a4", a4)
+
+    def forward(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """World vertices (V, 3) and joint heads (J, 3) after the global placement."""
+        params = torch.eye(4, dtype=torch.float64).repeat(1, len(self.names), 1, 1)
+        full = torch.zeros(len(self.names), 3, dtype=torch.float64).index_copy(0, self.free, self.rotvecs)
+        params = params.clone()
+        params[0, :, :3, :3] = axis_angle_to_matrix(full)
+        pheno = {k: torch.sigmoid(self.pheno[i])[None] for i, k in enumerate(self.labels)}
+        out = self.model(pose_parameters=params, phenotype_kwargs=pheno)
+        rot = axis_angle_to_matrix(self.g_rot)
+        verts = out["vertices"][0] @ self.a4[:3, :3].T @ rot.T + self.g_t
+        heads = (self.a4 @ out["bone_poses"][0])[:, :3, 3] @ rot.T + self.g_t
+        return verts, heads
+
+    def prior(self) -> torch.Tensor:
+        bend = torch.zeros((), dtype=torch.float64)
+        for name, sign in HINGES.items():
+            k = FREE_JOINTS.index(name)
+            axis = torch.as_tensor(ANNY_TO_WORLD.T @ np.array([1.0, 0.0, 0.0]))
+            bend = bend + F.relu(-sign * (self.rotvecs[k] @ axis)) ** 2
+        return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend
+
+    def result(self) -> dict:
+        pose = np.zeros((len(self.names), 3))
+        pose[self.free.numpy()] = self.rotvecs.detach().numpy()
+        phenotype = {k: float(torch.sigmoid(self.pheno[i].detach())) for i, k in enumerate(self.labels)}
+        return {
+            "phenotype": phenotype,
+            "pose": pose,
+            "global_orient": self.g_rot.detach().numpy().copy(),
+            "transl": self.g_t.detach().numpy().copy(),
+        }
+
+
+def _optimise(fit: AnnyFit, params: list, loss_fn, steps: int, lr: float) -> float:
+    opt = torch.optim.Adam(params, lr=lr)
+    loss = torch.zeros(())
+    for step in range(steps):
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        opt.step()
+        if step == int(steps * 0.7):
+            for g in opt.param_groups:
+                g["lr"] = lr * 0.3
+    return float(loss.detach())
+
+
+def fit_anny_to_smpl_joints(target: np.ndarray, steps: int = 300) -> dict:
+    """Fit Anny to (24+, 3) SMPL joints in any world frame; adds the per-joint error (m) and the body."""
+    target = np.asarray(target, dtype=np.float64)[:24]
+    if target.shape != (24, 3) or not np.isfinite(target).all():
+        raise ValueError(f"expected 24 finite SMPL joints (24, 3), got {target.shape}")
+    fit = AnnyFit()
+    smpl_ids = list(SMPL_TO_ANNY)
+    anny_ids = [fit.names.index(SMPL_TO_ANNY[i]) for i in smpl_ids]
+    with torch.no_grad():
+        _, heads = fit()
+    torso = [smpl_ids.index(i) for i in TORSO_SMPL]
+    rot, t = procrustes(heads[anny_ids].numpy()[torso], target[smpl_ids][torso])
+    with torch.no_grad():
+        fit.g_rot.copy_(matrix_to_axis_angle(torch.as_tensor(rot)))
+        fit.g_t.copy_(torch.as_tensor(t))
+    goal = torch.as_tensor(target[smpl_ids])
+
+    def loss():
+        _, heads = fit()
+        return ((heads[anny_ids] - goal) ** 2).sum(1).mean() + 1e-4 * fit.prior()
+
+    _optimise(fit, list(fit.parameters()), loss, steps, 0.03)
+    with torch.no_grad():
+        _, heads = fit()
+        err = (heads[anny_ids] - goal).norm(dim=1).numpy()
+    out = fit.result()
+    return {**out, "joint_error_m": err, "body": AnnyBody(out["phenotype"])}
+
+
+class ImageTargets:
+    """What the image fit matches: the camera, landmarks and the mask (with its distance fields)."""
+
+    def __init__(
+        self, K: np.ndarray, mask: np.ndarray, keypoints: np.ndarray | None, n_mask_samples: int = 1500, seed: int = 0
+    ) -> None:
+        self.K = torch.as_tensor(K, dtype=torch.float64)
+        self.h, self.w = mask.shape
+        self.mask = mask
+        outside = ndimage.distance_transform_edt(~mask)  # pixels to the mask, 0 inside
+        self.outside = torch.as_tensor(outside, dtype=torch.float64)[None, None]
+        ys, xs = np.nonzero(mask)
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(xs.size, size=min(n_mask_samples, xs.size), replace=False)
+        self.mask_pixels = torch.as_tensor(np.stack([xs[pick] + 0.5, ys[pick] + 0.5], 1), dtype=torch.float64)
+        self.keypoints = None if keypoints is None else torch.as_tensor(keypoints, dtype=torch.float64)
+        self.scale = float(max(self.h, self.w))
+
+    def project(self, x: torch.Tensor) -> torch.Tensor:
+        uv = x @ self.K.T
+        return uv[:, :2] / uv[:, 2:].clamp(min=1e-3)
+
+    def sample_outside(self, uv: torch.Tensor) -> torch.Tensor:
+        norm = torch.stack([uv[:, 0] / self.w * 2 - 1, uv[:, 1] / self.h * 2 - 1], -1).reshape(1, 1, -1, 2)
+        return F.grid_sample(self.outside, norm, mode="bilinear", padding_mode="border", align_corners=False).reshape(
+            -1
+        )
+
+
+def fit_anny_to_image(
+    K: np.ndarray, mask: np.ndarray, keypoints: np.ndarray | None, joints3d: np.ndarray | None = None, steps: int = 400
+) -> dict:
+    """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
+    visibility, pixels) and/or camera-space SMPL joints, then the silhouette."""
+    if keypoints is None and joints3d is None:
+        raise ValueError("the image fit needs 2D keypoints or 3D joints")
+    targets = ImageTargets(K, mask, keypoints)
+    fit = AnnyFit()
+    body0 = AnnyBody()
+    parts = body0.vertex_parts()
+    from .base import PART_NAMES
+
+    vsel = select_vertices(
+        body0.rest_vertices,
+        parts,
+        PART_NAMES.index("head"),
+        (PART_NAMES.index("left_shin"), PART_NAMES.index("right_shin")),
+    )
+    kp_ids, kp_joint, kp_vertex = [], [], []
+    for k, (kind, name) in KEYPOINTS.items():
+        kp_ids.append(k)
+        kp_joint.append(fit.names.index(name) if kind == "joint" else -1)
+        kp_vertex.append(vsel[name] if kind == "vertex" else -1)
+    kp_joint_t, kp_vertex_t = torch.tensor(kp_joint), torch.tensor(kp_vertex)
+    is_joint = kp_joint_t >= 0
+
+    def model_keypoints(verts, heads):
+        out = torch.zeros(len(kp_ids), 3, dtype=torch.float64)
+        out = torch.where(is_joint[:, None], heads[kp_joint_t.clamp(min=0)], verts[kp_vertex_t.clamp(min=0)])
+        return out
+
+    if keypoints is not None:
+        goal = targets.keypoints[kp_ids]
+        vis = (goal[:, 2] > 0.5).double()
+        torso_rows = torch.tensor([kp_ids.index(k) for k in TORSO_KEYPOINTS])
+    smpl_ids = list(SMPL_TO_ANNY)
+    anny_ids = [fit.names.index(SMPL_TO_ANNY[i]) for i in smpl_ids]
+
+    def kp_loss(verts, heads, rows=None):
+        uv = targets.project(model_keypoints(verts, heads))
+        d = ((uv - goal[:, :2]) / targets.scale).pow(2).sum(1)
+        robust = d / (d + 0.02**2)  # Geman-McClure, 2% of the image as scale
+        w = vis if rows is None else vis * torch.zeros_like(vis).index_fill(0, rows, 1.0)
+        return (robust * w).sum() / w.sum().clamp(min=1)
+
+    def j3_loss(heads):
+        return ((heads[anny_ids] - torch.as_tensor(joints3d[:24][smpl_ids])) ** 2).sum(1).mean()
+
+    def silhouette(verts):
+        uv = targets.project(verts)
+        inside = (targets.sample_outside(uv) / targets.scale).pow(2).mean()
+        sub = uv[::4]
+        d = torch.cdist(targets.mask_pixels, sub).min(1).values / targets.scale
+        return inside + d.pow(2).mean()
+
+    # Start: upright and facing the camera (or away), placed at the depth the torso's size implies.
+    base = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # body +y up -> image up; body front -> camera
+    best = None
+    for yaw in (0.0, np.pi):
+        with torch.no_grad():
+            fit.rotvecs.zero_()
+            fit.pheno.zero_()
+            rot = base @ axis_angle_to_matrix(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64)).numpy()
+            fit.g_rot.copy_(matrix_to_axis_angle(torch.as_tensor(rot)))
+            fit.g_t.zero_()
+            verts, heads = fit()
+        if joints3d is not None:
+            r, t = procrustes(
+                heads[anny_ids].numpy()[[smpl_ids.index(i) for i in TORSO_SMPL]],
+                np.asarray(joints3d)[:24][smpl_ids][[smpl_ids.index(i) for i in TORSO_SMPL]],
+            )
+            with torch.no_grad():
+                fit.g_rot.copy_(matrix_to_axis_angle(torch.as_tensor(r @ rot)))
+                fit.g_t.copy_(torch.as_tensor(t))
+        else:
+            ys, xs = np.nonzero(mask)
+            height_px = max(ys.max() - ys.min(), 1)
+            height_m = float(np.ptp(verts[:, 1].numpy()))
+            z = float(K[1, 1]) * height_m / height_px
+            cx, cy = (xs.min() + xs.max()) / 2, (ys.min() + ys.max()) / 2
+            centre = np.linalg.inv(K) @ np.array([cx, cy, 1.0]) * z
+            with torch.no_grad():
+                fit.g_t.copy_(torch.as_tensor(centre) - verts.mean(0) + fit.g_t)
+
+        def coarse():
+            verts, heads = fit()
+            loss = j3_loss(heads) if joints3d is not None else kp_loss(verts, heads, torso_rows)
+            return loss + 1e-3 * (fit.pheno**2).sum()
+
+        loss = _optimise(fit, [fit.g_rot, fit.g_t, fit.pheno], coarse, 60, 0.05)
+        if keypoints is not None:
+            with torch.no_grad():
+                loss = float(kp_loss(*fit()))
+        if best is None or loss < best[0]:
+            best = (loss, {k: v.detach().clone() for k, v in fit.state_dict().items()})
+    fit.load_state_dict(best[1])
+
+    def fine(with_silhouette: bool):
+        def loss():
+            verts, heads = fit()
+            total = 1e-3 * fit.prior()
+            if keypoints is not None:
+                total = total + kp_loss(verts, heads)
+            if joints3d is not None:
+                total = total + 10.0 * j3_loss(heads)
+            if with_silhouette:
+                total = total + 6.0 * silhouette(verts)
+            return total
+
+        return loss
+
+    _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
+    _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
+    with torch.no_grad():
+        verts, heads = fit()
+        report = {}
+        if keypoints is not None:
+            uv = targets.project(model_keypoints(verts, heads))
+            err = (uv - goal[:, :2]).norm(dim=1)[vis > 0].numpy()
+            report["keypoint_error_px"] = {
+                "median": float(np.median(err)),
+                "mean": float(err.mean()),
+                "per_keypoint": {int(k): float(e) for k, e in zip(np.array(kp_ids)[vis.numpy() > 0], err, strict=True)},
+            }
+        if joints3d is not None:
+            report["joint_error_mm"] = float(
+                np.median((heads[anny_ids] - torch.as_tensor(np.asarray(joints3d)[:24][smpl_ids])).norm(dim=1).numpy())
+                * 1000
+            )
+    out = fit.result()
+    return {**out, "report": report, "body": AnnyBody(out["phenotype"])}

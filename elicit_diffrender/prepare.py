@@ -1,0 +1,201 @@
+"""``elicit prepare``: from one photo to an ``elicit-subject/1`` folder (mask, camera, Anny body fit).
+
+* Mask: ``--mask``, else the image's alpha channel, else MediaPipe's pose segmentation.
+* Camera: focal from ``--focal``, else ``--params`` (CLIFF's ``focal_l``), else EXIF
+  (``FocalLengthIn35mmFilm``), else CLIFF's default ``f = sqrt(W^2 + H^2)``; principal point at the
+  image centre; identity extrinsics (the subject lives in camera space).
+* Body: Anny fitted to MediaPipe's 33 landmarks and the silhouette; with ``pred_joints`` in
+  ``--params`` (camera-space SMPL joints) those are fitted too.
+* Output: the subject (motion: the input pose, then a built-in motion placed where the person
+  stands), ``overlay.png`` and ``fit_report.json`` (keypoint error, silhouette IoU, time).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from .cameras import Camera
+from .errors import ElicitError
+from .io import write_image, write_json
+from .mediapipe_bridge import MediaPipeUnavailable, detect_pose
+from .subject import read_png, write_subject
+
+
+class PrepareError(ElicitError):
+    """A photo that cannot be turned into a subject."""
+
+
+def exif_focal(path: Path, width: int, height: int) -> float | None:
+    """Focal length in pixels from EXIF's 35 mm-equivalent focal length (36 mm across the long side)."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            exif = img.getexif()
+            value = exif.get_ifd(0x8769).get(0xA405) or exif.get(0xA405)  # FocalLengthIn35mmFilm
+    except Exception:  # unreadable or absent EXIF: fall through to the default
+        return None
+    if not value:
+        return None
+    return float(value) / 36.0 * max(width, height)
+
+
+def check_single_person(mask: np.ndarray, photo: Path) -> None:
+    if mask.sum() < 0.005 * mask.size:
+        raise PrepareError(f"{photo}: no person found (the person mask is empty)")
+    labels, n = ndimage.label(mask)
+    if n > 1:
+        sizes = np.sort(np.bincount(labels.ravel())[1:])[::-1]
+        if sizes[1] > 0.15 * sizes[0]:
+            raise PrepareError(
+                f"{photo}: several people found ({int((sizes > 0.15 * sizes[0]).sum())} large "
+                f"regions in the person mask); crop the photo to one person"
+            )
+
+
+def check_not_cut_off(mask: np.ndarray, landmarks: np.ndarray | None, photo: Path) -> None:
+    h, w = mask.shape
+    for name, row in (("top", mask[0]), ("bottom", mask[-1])):
+        if row.sum() > 0.02 * w:
+            raise PrepareError(
+                f"{photo}: the person is cut off by the {name} image border; a full-body photo is needed"
+            )
+    if landmarks is not None:
+        for idx, part in ((0, "head"), (27, "left ankle"), (28, "right ankle")):
+            x, y, vis = landmarks[idx]
+            if vis < 0.3 or not (0 <= x < w and 0 <= y < h):
+                raise PrepareError(
+                    f"{photo}: the person's {part} is outside the image or hidden; a full-body photo is needed"
+                )
+
+
+def largest_component(mask: np.ndarray) -> np.ndarray:
+    labels, n = ndimage.label(mask)
+    if n <= 1:
+        return mask
+    return labels == (np.argmax(np.bincount(labels.ravel())[1:]) + 1)
+
+
+def prepare(
+    photo: str | Path,
+    out: str | Path,
+    mask_path: str | Path | None = None,
+    params_path: str | Path | None = None,
+    focal: float | None = None,
+    motion: str = "walk_in_place",
+    steps: int = 400,
+) -> dict:
+    """Build a subject from one photo; returns the fit report (also ``fit_report.json``)."""
+    from .body.fitting import fit_anny_to_image
+    from .importers import motion_with_input_frame
+
+    t0 = time.perf_counter()
+    photo, out = Path(photo), Path(out)
+    image = read_png(photo, None, "photo") if photo.is_file() else None
+    if image is None:
+        raise PrepareError(f"{photo}: photo not found")
+    h, w = image.shape[:2]
+    rgb = (image[..., :3] if image.ndim == 3 else np.repeat(image[..., None], 3, 2)).astype(np.float32) / 255.0
+    sources: dict[str, str] = {}
+    detection = None
+    try:
+        detection = detect_pose(photo)
+    except MediaPipeUnavailable as exc:
+        missing_exc = exc
+    # Mask.
+    if mask_path is not None:
+        m = read_png(Path(mask_path), (h, w), "mask")
+        m = m[..., 0] if m.ndim == 3 else m
+        mask = m > 0 if m.max() <= 1 else m > 127  # 1-bit masks read as 0/1
+        sources["mask"] = f"file {mask_path}"
+    elif image.ndim == 3 and image.shape[2] == 4 and image[..., 3].min() < 255:
+        mask = image[..., 3] > 127
+        sources["mask"] = "alpha channel"
+    elif detection is not None:
+        check_single_person(detection.segmentation > 0.5, photo)
+        mask = largest_component(detection.segmentation > 0.5)
+        sources["mask"] = "MediaPipe pose segmentation"
+    else:
+        raise PrepareError(f"{photo}: no --mask and no alpha channel, and {missing_exc}")
+    check_single_person(mask, photo)
+    landmarks = detection.landmarks if detection is not None else None
+    check_not_cut_off(mask, landmarks, photo)
+    # Camera.
+    params = dict(np.load(params_path, allow_pickle=True)) if params_path is not None else {}
+    if focal is not None:
+        sources["focal"] = "--focal"
+    elif "focal_l" in params:
+        focal = float(np.ravel(params["focal_l"])[0])
+        sources["focal"] = f"{params_path} focal_l"
+    elif (f := exif_focal(photo, w, h)) is not None:
+        focal, sources["focal"] = f, "EXIF FocalLengthIn35mmFilm"
+    else:
+        focal, sources["focal"] = float(np.hypot(w, h)), "default sqrt(W^2 + H^2) (CLIFF's)"
+    K = np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]])
+    camera = Camera(K, np.eye(3), np.zeros(3), w, h, "input")
+    # Body.
+    joints3d = np.asarray(params["pred_joints"]).reshape(-1, 3)[:24] if "pred_joints" in params else None
+    if landmarks is None and joints3d is None:
+        if detection is None:
+            raise PrepareError(f"{photo}: keypoints are needed for the body fit and {missing_exc}")
+        raise PrepareError(f"{photo}: no person found by MediaPipe")
+    sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
+    sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
+    fit = fit_anny_to_image(K, mask, landmarks, joints3d, steps=steps)
+    body = fit["body"]
+    spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
+    motion_obj = motion_with_input_frame(
+        body, fit["pose"], fit["global_orient"], fit["transl"], motion, np.array([0.0, -1.0, 0.0])
+    )
+    write_subject(
+        out,
+        spec,
+        {"input": camera},
+        motion_obj,
+        "input",
+        0,
+        {("input", 0): (rgb * mask[..., None], mask)},
+        {"prepare": {"photo": str(photo), **sources}},
+    )
+    # Report and overlay.
+    from .mesh_render import MeshRenderer
+
+    posed = body.pose(*motion_obj.frame(0))
+    render = MeshRenderer(body.faces).render(posed.vertices, [camera], ("mask",))["mask"][0] > 0
+    iou = float((render & mask).sum() / max((render | mask).sum(), 1))
+    report = {
+        "photo": str(photo),
+        "subject": str(out),
+        "image_size": [w, h],
+        "focal_px": focal,
+        "sources": sources,
+        "silhouette_iou": iou,
+        **fit["report"],
+        "seconds": time.perf_counter() - t0,
+    }
+    if "keypoint_error_px" in report:
+        report["keypoint_error_percent_of_height"] = 100.0 * report["keypoint_error_px"]["median"] / h
+    write_json(out / "fit_report.json", report)
+    write_overlay(out / "overlay.png", rgb, mask, render, landmarks, camera, posed, body)
+    return report
+
+
+def write_overlay(
+    path: Path, rgb: np.ndarray, mask: np.ndarray, render: np.ndarray, landmarks, camera, posed, body
+) -> Path:
+    """The photo with the fitted body (tinted), the mask outline (green) and keypoints (detected: yellow)."""
+    img = rgb.copy()
+    img[render] = 0.55 * img[render] + 0.45 * np.array([0.9, 0.2, 0.2])
+    edge = mask & ~ndimage.binary_erosion(mask, iterations=2)
+    img[edge] = (0.1, 0.9, 0.2)
+    if landmarks is not None:
+        for x, y, vis in landmarks:
+            if vis > 0.5:
+                yi, xi = int(y), int(x)
+                img[max(0, yi - 3) : yi + 4, max(0, xi - 3) : xi + 4] = (1.0, 0.9, 0.1)
+    step = max(1, max(img.shape[:2]) // 512)
+    return write_image(path, img[::step, ::step])

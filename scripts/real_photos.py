@@ -1,0 +1,148 @@
+#!/usr/bin/env python
+"""Run ``elicit prepare`` on every photo in ../shared/real/, then fit two of them and render front,
+side and back views. Writes ``docs/real_photos.md`` and small downscaled images under
+``docs/images/`` (the photos themselves are never copied into the project).
+
+    python scripts/real_photos.py [--shared ../shared/real] [--fit elicit_fs3903_m394 pifu_ryota] [--skip-fit]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+PHOTOS = {  # folder -> (photo, mask, params)
+    "elicit_fs0000_m394": ("gt_image.png", "gt_mask.png", "gt_params.npz"),
+    "elicit_fs2804_m394": ("gt_image.png", "gt_mask.png", "gt_params.npz"),
+    "elicit_fs3903_m394": ("gt_image.png", "gt_mask.png", "gt_params.npz"),
+    "elicit_fs7818_m394": ("gt_image.png", "gt_mask.png", "gt_params.npz"),
+    "pifu_ryota": ("ryota.png", "ryota_mask.png", None),
+}
+
+
+def small(image: np.ndarray, height: int = 256) -> np.ndarray:
+    step = max(1, image.shape[0] // height)
+    return image[::step, ::step]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shared", type=Path, default=ROOT.parent / "shared" / "real")
+    ap.add_argument("--work", type=Path, default=ROOT / "runs" / "real_photos")
+    ap.add_argument("--fit", nargs="*", default=["elicit_fs3903_m394", "pifu_ryota"])
+    ap.add_argument("--skip-fit", action="store_true")
+    args = ap.parse_args()
+    import imageio.v3 as iio
+
+    from elicit_diffrender.animate import contact_sheet, load_avatar
+    from elicit_diffrender.fit import place_ring
+    from elicit_diffrender.io import write_text
+    from elicit_diffrender.subject import load_subject
+
+    elicit = str(Path(sys.executable).with_name("elicit"))
+    rows, tiles, captions = [], [], []
+    for name, (photo, mask, params) in PHOTOS.items():
+        src = args.shared / name
+        out = args.work / name
+        if not (out / "fit_report.json").is_file():
+            cmd = [elicit, "prepare", str(src / photo), "--mask", str(src / mask), "--out", str(out)]
+            if params:
+                cmd += ["--params", str(src / params)]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                rows.append({"photo": name, "error": done.stderr.strip().splitlines()[-1]})
+                continue
+        r = json.loads((out / "fit_report.json").read_text())
+        kp = r.get("keypoint_error_px", {})
+        rows.append(
+            {
+                "photo": name,
+                "size": f"{r['image_size'][0]}x{r['image_size'][1]}",
+                "iou": r["silhouette_iou"],
+                "kp_px": kp.get("median"),
+                "kp_pct": r.get("keypoint_error_percent_of_height"),
+                "joints_mm": r.get("joint_error_mm"),
+                "seconds": r["seconds"],
+                "focal": r["sources"]["focal"],
+                "mask": r["sources"]["mask"],
+                "joints3d": r["sources"]["joints3d"] != "none",
+            }
+        )
+        tiles.append(small(iio.imread(out / "overlay.png")[..., :3].astype(np.float32) / 255.0))
+        captions.append(name)
+    sheet = contact_sheet(tiles, captions, ROOT / "docs" / "images" / "real_overlays.png")
+    fits = []
+    for name in [] if args.skip_fit else args.fit:
+        subject_dir, run = args.work / name, args.work / f"{name}_run"
+        if not (run / "avatar.pt").is_file():
+            resume = ["--resume"] if (run / "checkpoint.pt").is_file() else []
+            subprocess.run([elicit, "fit", str(subject_dir), "--out", str(run), *resume], check=True)
+        subject = load_subject(subject_dir)
+        avatar = load_avatar(run)
+        ring = place_ring(subject, 8, 256)
+        pose = subject.motion.frame(subject.input_index)
+        views = [avatar.render_pose(ring[k], *pose)["rgb"] for k in (0, 2, 4)]
+        novel = avatar.render_pose(ring[1], *subject.motion.frame(len(subject.motion) // 2))["rgb"]
+        target = small(subject.image(subject.input_camera, subject.input_frame))
+        path = contact_sheet(
+            [target, *views, novel],
+            ["input", "front", "side", "back", "novel pose"],
+            ROOT / "docs" / "images" / f"real_fit_{name}.png",
+        )
+        report = json.loads((run / "run.json").read_text())
+        fits.append(
+            {
+                "photo": name,
+                "image": path.name,
+                "seconds": report["seconds"]["total"],
+                "encoder": report["encoder"]["name"],
+            }
+        )
+    lines = [
+        "# Real photos: from one photo to an avatar",
+        "",
+        "`elicit prepare` on every photo in `../shared/real/` (third-party test inputs, see its SOURCES.md; "
+        "not part of the project). Masks are the folders' own; focal lengths from `gt_params.npz` where "
+        "present, else CLIFF's default `sqrt(W^2 + H^2)`. Keypoints from MediaPipe Pose (0.10.21, "
+        "model complexity 1); `pred_joints` (camera-space SMPL joints) are fitted too where present. "
+        "Targets: silhouette IoU >= 0.85, median keypoint error <= 3% of the image height, <= 60 s.",
+        "",
+        f"![overlays]({Path('images') / sheet.name})",
+        "",
+        "Overlay: fitted Anny body tinted red, mask outline green, detected keypoints yellow.",
+        "",
+        "| photo | size | silhouette IoU | keypoint error (px, median) | % of height | 3D joints fitted | "
+        "joint error (mm) | seconds | focal from |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['photo']} | error: {r['error']} |||||||| ")
+            continue
+        joints = f"{r['joints_mm']:.0f}" if r["joints_mm"] is not None else ""
+        lines.append(
+            f"| {r['photo']} | {r['size']} | {r['iou']:.3f} | {r['kp_px']:.1f} | {r['kp_pct']:.2f} | "
+            f"{'yes' if r['joints3d'] else 'no'} | {joints} | {r['seconds']:.0f} | {r['focal']} |"
+        )
+    for f in fits:
+        lines += [
+            "",
+            f"## Avatar: {f['photo']}",
+            "",
+            f"`elicit fit` with `cpu-fast` ({f['seconds'] / 60:.1f} min, semantic encoder: {f['encoder']}).",
+            "",
+            f"![{f['photo']}]({Path('images') / f['image']})",
+        ]
+    write_text(ROOT / "docs" / "real_photos.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

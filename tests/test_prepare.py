@@ -1,0 +1,82 @@
+"""elicit prepare: masks, camera sources, failure modes, and a full run on a synthetic photo."""
+
+import numpy as np
+import pytest
+
+from elicit_diffrender.io import write_image
+from elicit_diffrender.mediapipe_bridge import MediaPipeUnavailable, mediapipe_python
+from elicit_diffrender.prepare import PrepareError, check_not_cut_off, check_single_person, exif_focal, prepare
+from elicit_diffrender.subject import load_subject
+from elicit_diffrender.synth import synthesize
+
+HAS_MEDIAPIPE = mediapipe_python() is not None
+
+
+def blob(h=100, w=80, boxes=((20, 80, 30, 50),)):
+    m = np.zeros((h, w), bool)
+    for y0, y1, x0, x1 in boxes:
+        m[y0:y1, x0:x1] = True
+    return m
+
+
+def test_failure_modes_name_the_problem(tmp_path):
+    photo = tmp_path / "p.png"
+    with pytest.raises(PrepareError, match="no person found"):
+        check_single_person(np.zeros((50, 50), bool), photo)
+    with pytest.raises(PrepareError, match="several people"):
+        check_single_person(blob(boxes=((20, 80, 5, 25), (20, 80, 50, 70))), photo)
+    check_single_person(blob(boxes=((20, 80, 5, 35), (20, 22, 60, 62))), photo)  # a stray speck is fine
+    with pytest.raises(PrepareError, match="cut off by the bottom"):
+        check_not_cut_off(blob(boxes=((20, 100, 30, 50),)), None, photo)
+    landmarks = np.tile([40.0, 50.0, 0.9], (33, 1))
+    landmarks[27] = (40.0, 130.0, 0.9)  # the left ankle below the image
+    with pytest.raises(PrepareError, match="left ankle"):
+        check_not_cut_off(blob(), landmarks, photo)
+
+
+def test_exif_focal(tmp_path):
+    from PIL import Image
+
+    img = Image.new("RGB", (400, 300))
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 50  # FocalLengthIn35mmFilm
+    img.save(tmp_path / "a.jpg", exif=exif)
+    assert exif_focal(tmp_path / "a.jpg", 400, 300) == pytest.approx(50 / 36 * 400)
+    img.save(tmp_path / "b.jpg")
+    assert exif_focal(tmp_path / "b.jpg", 400, 300) is None
+
+
+def test_missing_mediapipe_gives_install_hint(tmp_path, monkeypatch):
+    monkeypatch.setenv("ELICIT_MEDIAPIPE_PYTHON", str(tmp_path / "no-python"))
+    write_image(tmp_path / "p.png", np.zeros((40, 30, 3)))
+    with pytest.raises(PrepareError, match="setup.sh"):
+        prepare(tmp_path / "p.png", tmp_path / "out")
+
+
+@pytest.fixture(scope="module")
+def synthetic_photo(tmp_path_factory):
+    root = synthesize(11, tmp_path_factory.mktemp("photo") / "s", size=384, spp=8, n_cameras=1, texture_size=512)
+    s = load_subject(root)
+    return s, s.image_path("cam00", 0), s.mask_path("cam00", 0)
+
+
+@pytest.mark.skipif(not HAS_MEDIAPIPE, reason="MediaPipe environment not installed (scripts/setup.sh creates it)")
+def test_prepare_a_synthetic_photo(tmp_path, synthetic_photo):
+    s, photo, mask = synthetic_photo
+    report = prepare(photo, tmp_path / "out", mask_path=mask, focal=float(s.cameras["cam00"].K[0, 0]), steps=200)
+    assert report["silhouette_iou"] > 0.8
+    assert report["keypoint_error_percent_of_height"] < 3.0
+    assert report["sources"]["focal"] == "--focal" and report["sources"]["mask"].startswith("file")
+    prepared = load_subject(tmp_path / "out")
+    assert prepared.body_spec["model"] == "anny" and len(prepared.motion) > 10
+    assert (tmp_path / "out" / "overlay.png").is_file()
+    # Without a mask or alpha the mask comes from MediaPipe.
+    report = prepare(photo, tmp_path / "out2", steps=50)
+    assert report["sources"]["mask"] == "MediaPipe pose segmentation" and "default" in report["sources"]["focal"]
+
+
+@pytest.mark.skipif(HAS_MEDIAPIPE, reason="checks the error path when MediaPipe is absent")
+def test_prepare_without_mediapipe_needs_a_mask(tmp_path, synthetic_photo):
+    _, photo, _ = synthetic_photo
+    with pytest.raises((PrepareError, MediaPipeUnavailable)):
+        prepare(photo, tmp_path / "out")
