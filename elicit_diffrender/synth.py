@@ -359,7 +359,7 @@ def _ground_shift(body: AnnyBody, pose: np.ndarray) -> np.ndarray:
 def write_contact_sheet(out: Path, views: dict, cameras: dict, input_cam: str, n_frames: int) -> Path:
     """Input | 5 ring views at the input frame, then 6 frames of the motion from the input camera."""
     names = list(cameras)
-    ring = [names[round(k * len(names) / 6)] for k in range(6)]
+    ring = [names[k * len(names) // 6] for k in range(6)]
     frames = np.linspace(1, n_frames - 1, 6).astype(int)
     row1 = [views[(c, 0)][0] for c in ring]
     row2 = [views[(input_cam, int(f))][0] for f in frames]
