@@ -77,6 +77,18 @@ def _prepare(args: argparse.Namespace) -> None:
     )
 
 
+def _import(args: argparse.Namespace) -> None:
+    from .importers import import_elicit_wild, import_zju
+
+    if args.layout == "elicit-wild":
+        out = import_elicit_wild(args.source, args.out, args.motion, args.smpl)
+    else:
+        if not args.frames:
+            raise ElicitError("import zju needs --frames (the frame ids to import; the first is the input)")
+        out = import_zju(args.source, args.out, args.frames, args.input_camera, args.smpl)
+    print(f"wrote subject {out}")
+
+
 def _rigs(args: argparse.Namespace) -> None:
     from .rigs import orbit_cameras, ring_cameras, write_rig
 
@@ -153,6 +165,16 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--focal", type=float, default=None, help="focal length in pixels")
     q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
     q.set_defaults(func=_prepare)
+
+    i = sub.add_parser("import", help="import ELICIT's in-the-wild layout or ZJU-MoCap as a subject")
+    i.add_argument("layout", choices=["elicit-wild", "zju"])
+    i.add_argument("source", type=Path)
+    i.add_argument("--out", type=Path, required=True)
+    i.add_argument("--motion", default="walk_in_place", help="elicit-wild: built-in target motion")
+    i.add_argument("--smpl", default=None, help="SMPL model file or folder (else ELICIT_SMPL_DIR)")
+    i.add_argument("--frames", type=int, nargs="*", default=None, help="zju: frame ids")
+    i.add_argument("--input-camera", type=int, default=0, help="zju: index of the input camera")
+    i.set_defaults(func=_import)
 
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])
