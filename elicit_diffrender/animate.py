@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from .avatar import Avatar
 from .cameras import Camera
+from .device import default_device
 from .errors import ElicitError
 from .io import atomic_write, write_image
 from .motions import Motion, load_motion
@@ -66,7 +67,7 @@ def load_avatar(run: str | Path):
     if isinstance(data, dict) and data.get("format") == TEXTURED:
         return TexturedBody.from_state(data)
     try:
-        return Avatar.from_state(data)
+        return Avatar.from_state(data).to(default_device())
     except AvatarError as exc:
         raise AvatarError(f"{path}: {exc}") from None
 

@@ -117,6 +117,10 @@ class Avatar(nn.Module):
         return avatar
 
     @property
+    def device(self) -> torch.device:
+        return self.field.density.device
+
+    @property
     def body(self) -> BodyModel:
         if self._body is None:
             self._body = load_body(self.body_spec)
@@ -126,14 +130,14 @@ class Avatar(nn.Module):
     def pose_frames(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> torch.Tensor:
         """(B, 4, 4) world frames of the reduced skeleton for one pose of the body model."""
         posed = self.body.pose(pose, global_orient, transl)
-        return torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32)
+        return torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32, device=self.device)
 
     def refined(self, frames: torch.Tensor) -> torch.Tensor:
         """Apply the learned pose correction (a rotation per reduced joint, down the kinematic chain)."""
         local = []
         for b, p in enumerate(self.parents):
             local.append(frames[b] if p < 0 else rigid_inverse(frames[p]) @ frames[b])
-        delta = torch.eye(4).repeat(len(self.parents), 1, 1)
+        delta = torch.eye(4, device=frames.device).repeat(len(self.parents), 1, 1)
         delta[:, :3, :3] = axis_angle_to_matrix(self.pose_delta)
         out: list[torch.Tensor] = []
         for b, p in enumerate(self.parents):
@@ -148,12 +152,17 @@ class Avatar(nn.Module):
     def observation_space(self, frames: torch.Tensor, margin: float = 0.03) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells."""
         f = self.field
-        cells = torch.as_tensor(grid_points(f.box.double(), tuple(f.occupancy.shape)), dtype=torch.float32)
+        dev = self.device
+        cells = torch.as_tensor(
+            grid_points(f.box.double().cpu(), tuple(f.occupancy.shape)), dtype=torch.float32, device=dev
+        )
         occupied = cells[f.occupancy.bool()] if f.occupancy_cell > 0 else cells.reshape(-1, 3)
         if occupied.shape[0] == 0:
             occupied = cells.reshape(-1, 3)
         step = max(f.occupancy_cell, f.voxel_size) / 4.0
-        offsets = torch.tensor([[x, y, z] for x in (-step, step) for y in (-step, step) for z in (-step, step)])
+        offsets = torch.tensor(
+            [[x, y, z] for x in (-step, step) for y in (-step, step) for z in (-step, step)], device=dev
+        )
         pts = (occupied[:, None] + offsets[None]).reshape(-1, 3)
         w = sample_grid(self.motion_weights(), self.motion_weights.box, pts)  # (N, B)
         w = w / w.sum(1, keepdim=True).clamp(min=1e-6)
@@ -164,9 +173,10 @@ class Avatar(nn.Module):
         if f.occupancy_cell <= 0:
             return box, None
         shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (box[1] - box[0]))
-        idx = ((posed - box[0]) / (box[1] - box[0]) * torch.tensor(shape)).long()
-        idx = torch.minimum(idx.clamp(min=0), torch.tensor(shape) - 1)
-        occ = torch.zeros(shape)
+        size = torch.tensor(shape, device=dev)
+        idx = ((posed - box[0]) / (box[1] - box[0]) * size).long()
+        idx = torch.minimum(idx.clamp(min=0), size - 1)
+        occ = torch.zeros(shape, device=dev)
         occ[idx[:, 0], idx[:, 1], idx[:, 2]] = 1.0
         occ = F.max_pool3d(occ[None, None], 3, 1, 1)[0, 0]
         return box, occ.to(torch.uint8)
@@ -219,8 +229,8 @@ class Avatar(nn.Module):
     ) -> dict[str, np.ndarray]:
         """A full image: (H, W, 3) colour and (H, W) alpha."""
         space = self.observation_space(frames)
-        origins, dirs = camera.rays()
-        bg = torch.tensor(background, dtype=torch.float32)
+        origins, dirs = camera.rays(device=self.device)
+        bg = torch.tensor(background, dtype=torch.float32, device=self.device)
         rgb, alpha = [], []
         for s in range(0, origins.shape[0], chunk):
             out = self.render_rays(
@@ -229,7 +239,10 @@ class Avatar(nn.Module):
             rgb.append(out["rgb"])
             alpha.append(out["alpha"])
         h, w = camera.height, camera.width
-        return {"rgb": torch.cat(rgb).reshape(h, w, 3).numpy(), "alpha": torch.cat(alpha).reshape(h, w).numpy()}
+        return {
+            "rgb": torch.cat(rgb).reshape(h, w, 3).cpu().numpy(),
+            "alpha": torch.cat(alpha).reshape(h, w).cpu().numpy(),
+        }
 
     def render_pose(
         self, camera: Camera, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray, n_samples: int = 64
@@ -277,17 +290,3 @@ class Avatar(nn.Module):
         )
         avatar.load_state_dict(t)
         return avatar
-
-    @classmethod
-    def load(cls, path: str | Path) -> Avatar:
-        path = Path(path)
-        if not path.is_file():
-            raise AvatarError(f"{path}: avatar file not found")
-        try:
-            data = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises several types for corrupt files
-            raise AvatarError(f"{path}: unreadable avatar file ({exc})") from exc
-        try:
-            return cls.from_state(data)
-        except AvatarError as exc:
-            raise AvatarError(f"{path}: {exc}") from None

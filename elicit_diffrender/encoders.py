@@ -58,7 +58,8 @@ class ClipEncoder(nn.Module):
 
     @torch.no_grad()
     def encode_text(self, text: str) -> torch.Tensor:
-        return F.normalize(self.model.encode_text(self.tokenizer([text])), dim=-1)[0]
+        tokens = self.tokenizer([text]).to(self.mean.device)
+        return F.normalize(self.model.encode_text(tokens), dim=-1)[0]
 
 
 class RandomFeatureEncoder(nn.Module):

@@ -59,24 +59,22 @@ def ssim_in_rect(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 
 
 class Lpips:
-    def __init__(self) -> None:
-        self.model, self.reason = None, ""
-        try:
-            import lpips
-            import torch
+    """LPIPS(VGG) on the bounding rectangle of the evaluated region, or None without its weights."""
 
-            self.model = lpips.LPIPS(net="vgg", verbose=False).eval()
-            self.torch = torch
-        except Exception as exc:  # not installed, or no weights offline
-            self.reason = f"LPIPS(VGG) weights unavailable ({type(exc).__name__}: {str(exc)[:100]})"
+    def __init__(self) -> None:
+        from .losses import load_lpips
+
+        self.model, self.reason = load_lpips()
 
     def __call__(self, a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | None:
         if self.model is None:
             return None
+        import torch
+
         ys, xs = np.nonzero(mask)
         crop = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-        t = [self.torch.as_tensor(x[crop]).permute(2, 0, 1)[None].float() * 2 - 1 for x in (a, b)]
-        with self.torch.no_grad():
+        t = [torch.as_tensor(x[crop]).permute(2, 0, 1)[None].float() * 2 - 1 for x in (a, b)]
+        with torch.no_grad():
             return float(self.model(*t))
 
 

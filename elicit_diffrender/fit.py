@@ -26,6 +26,7 @@ from .avatar import Avatar
 from .body.template import template_colors
 from .cameras import Camera
 from .config import FitConfig, config_dict
+from .device import default_device
 from .encoders import load_encoder
 from .errors import ElicitError
 from .io import atomic_write, write_image, write_json
@@ -47,7 +48,7 @@ def crop_image(image: torch.Tensor, window: tuple[float, float, float], size: in
     """Resample the square ``window`` (x0, y0, side) of a (C, H, W) image to (C, size, size); zero outside."""
     c, h, w = image.shape
     x0, y0, side = window
-    centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (side / size)
+    centres = (torch.arange(size, dtype=torch.float32, device=image.device) + 0.5) * (side / size)
     gx = (x0 + centres) / w * 2 - 1
     gy = (y0 + centres) / h * 2 - 1
     grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None]
@@ -106,6 +107,7 @@ class Fitter:
         self.stage = 1
         self.lr_scale = 1.0
         self.body = subject.body
+        self.device = default_device()
         ab = cfg.ablation
         self.hybrid = ab != "no_hybrid_sampling"
         self.soft_silhouette = ab != "hard_silhouette"
@@ -136,6 +138,7 @@ class Fitter:
             config_dict(cfg),
             body_prior=self.use_init,
         )
+        self.avatar.to(self.device)
         self.avatar.motion_weights.logits.requires_grad_(cfg.learn_motion_weights)
         self.avatar.pose_delta.requires_grad_(cfg.refine_input_pose)
         self.outside_body = self.outside_body_mask()
@@ -149,8 +152,8 @@ class Fitter:
         img = torch.as_tensor(subject.image(subject.input_camera, subject.input_frame)).permute(2, 0, 1)
         msk = torch.as_tensor(subject.mask(subject.input_camera, subject.input_frame), dtype=torch.float32)[None]
         size = (self.input_cam.height, self.input_cam.width)
-        self.input_image = F.interpolate(img[None], size=size, mode="area")[0]
-        self.input_mask = (F.interpolate(msk[None], size=size, mode="area")[0, 0] > 0.5).float()
+        self.input_image = F.interpolate(img[None], size=size, mode="area")[0].to(self.device)
+        self.input_mask = (F.interpolate(msk[None], size=size, mode="area")[0, 0] > 0.5).float().to(self.device)
         self.input_image = self.input_image * self.input_mask
         renderer = self.prior_renderer()
         posed = self.body.pose(*subject.motion.frame(subject.input_index))
@@ -161,7 +164,9 @@ class Fitter:
             if self.w_semantic > 0 or cfg.w_text > 0
             else (None, None)
         )
-        self.perceptual = Perceptual(cfg.perceptual)
+        if self.encoder is not None:
+            self.encoder.to(self.device)
+        self.perceptual = Perceptual(cfg.perceptual, self.device)
         self.text_embedding = None
         if cfg.text_prompt and cfg.w_text > 0 and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
@@ -187,7 +192,7 @@ class Fitter:
         field = self.avatar.field
         pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
         sdf = signed_distance(pts, canon.vertices, vertex_normals(canon.vertices, self.body.faces))
-        return torch.as_tensor((sdf > field.voxel_size).reshape(field.shape), dtype=torch.float32)
+        return torch.as_tensor((sdf > field.voxel_size).reshape(field.shape), dtype=torch.float32, device=self.device)
 
     def prior_renderer(self) -> MeshRenderer:
         if not hasattr(self, "_prior_renderer"):
@@ -235,8 +240,8 @@ class Fitter:
         """(P, 3) mean colour of every body part in the input image (the whole person's where unseen)."""
         from .body import PART_NAMES
 
-        img = self.input_image.permute(1, 2, 0).numpy()
-        person = (self.input_mask.numpy() > 0.5) & (self.input_labels >= 0)
+        img = self.input_image.permute(1, 2, 0).cpu().numpy()
+        person = (self.input_mask.cpu().numpy() > 0.5) & (self.input_labels >= 0)
         overall = img[person].mean(0) if person.any() else np.full(3, 0.5)
         out = np.tile(overall, (len(PART_NAMES), 1))
         for p in range(len(PART_NAMES)):
@@ -249,6 +254,10 @@ class Fitter:
         canon = self.body.pose(self.body.canonical_pose())
         self.avatar.field.set_colors_by_part(canon.vertices, self.body.vertex_parts(), self.input_part_colors())
         log.info("stage 2 colours: reset to the input image's mean colour per body part")
+
+    def tensor(self, array) -> torch.Tensor:
+        """A float32 tensor on the fit's device."""
+        return torch.as_tensor(np.asarray(array, dtype=np.float32), device=self.device)
 
     # ---- rendering helpers ---------------------------------------------------------------------------
     def frames_for(self, f: int) -> torch.Tensor:
@@ -271,7 +280,7 @@ class Fitter:
     def render(
         self, camera: Camera, f: int, background: torch.Tensor, outputs=("rgb", "alpha"), grad: bool = True
     ) -> dict:
-        origins, dirs = camera.rays()
+        origins, dirs = camera.rays(device=self.device)
         with torch.set_grad_enabled(grad):
             out = self.avatar.render_rays(
                 origins,
@@ -317,10 +326,10 @@ class Fitter:
         alpha = self.prior.alpha[fi, ci].astype(np.float32) / 255.0
         x0, y0 = self.random_patch(alpha > 0.5, size)
         cam = self.ring[ci].crop(x0, y0, size, size, size)
-        bg = torch.rand(3)
+        bg = torch.rand(3, device=self.device)
         out = self.render(cam, self.frames[fi], bg)
-        color = torch.as_tensor(self.prior.color[fi, ci, y0 : y0 + size, x0 : x0 + size], dtype=torch.float32) / 255.0
-        a = torch.as_tensor(alpha[y0 : y0 + size, x0 : x0 + size])
+        color = self.tensor(self.prior.color[fi, ci, y0 : y0 + size, x0 : x0 + size]) / 255.0
+        a = self.tensor(alpha[y0 : y0 + size, x0 : x0 + size])
         target = (color * a[..., None] + bg * (1 - a[..., None])).permute(2, 0, 1)[None]
         loss, terms = self.recon_loss(out["rgb"], target)
         sil = mse(out["alpha"][0], a)
@@ -329,9 +338,9 @@ class Fitter:
     def input_step(self) -> tuple[torch.Tensor, dict]:
         """Reconstruct a patch of the input image (random background)."""
         size = min(self.cfg.crop_size, self.input_cam.width, self.input_cam.height)
-        x0, y0 = self.random_patch(self.input_mask.numpy() > 0.5, size)
+        x0, y0 = self.random_patch(self.input_mask.cpu().numpy() > 0.5, size)
         cam = self.input_cam.crop(x0, y0, size, size, size)
-        bg = torch.rand(3)
+        bg = torch.rand(3, device=self.device)
         out = self.render(cam, self.subject.input_index, bg)
         m = self.input_mask[y0 : y0 + size, x0 : x0 + size]
         target = self.input_image[:, y0 : y0 + size, x0 : x0 + size] * m + bg[:, None, None] * (1 - m)
@@ -349,18 +358,18 @@ class Fitter:
             return None
         size = cfg.crop_size
         cam = self.ring[view.camera].crop(*view.window[:2], view.window[2], view.window[2], size)
-        black = torch.zeros(3)
+        black = torch.zeros(3, device=self.device)
         out = self.render(cam, self.frames[fi], black)
-        body = torch.as_tensor((labels[view.camera] >= 0).astype(np.float32))[None]
+        body = self.tensor(labels[view.camera] >= 0)[None]
         mask = crop_image(body, view.window, size)[0].clamp(0, 1)
         terms: dict = {"part": view.part}
-        loss = torch.zeros(())
+        loss = torch.zeros((), device=self.device)
         if self.w_sil > 0:
             sil = silhouette_loss(out["alpha"][0], mask, soft=self.soft_silhouette)
             loss = loss + self.w_sil * sil
             terms["sil"] = float(sil.detach())
         if self.w_edge > 0:
-            dist = torch.as_tensor(edge_distance(mask.numpy() > 0.5))
+            dist = self.tensor(edge_distance(mask.cpu().numpy() > 0.5))
             e = edge_loss(out["alpha"], mask[None], dist[None])
             loss = loss + self.w_edge * e
             terms["edge"] = float(e.detach())
@@ -371,7 +380,7 @@ class Fitter:
             else:
                 ref_img, ref_mask = ref
                 part = crop_image(
-                    torch.as_tensor(part_pixels(labels[view.camera], view.part), dtype=torch.float32)[None],
+                    self.tensor(part_pixels(labels[view.camera], view.part))[None],
                     view.window,
                     size,
                 )
@@ -396,14 +405,14 @@ class Fitter:
             if window is None:
                 return None
             cam = self.ring[view.ref_camera].crop(*window[:2], window[2], window[2], size)
-            image = self.render(cam, self.frames[fi], torch.zeros(3), grad=False)["rgb"].detach()
+            image = self.render(cam, self.frames[fi], torch.zeros(3, device=self.device), grad=False)["rgb"].detach()
         else:
             mask = part_pixels(self.input_labels.astype(np.int16), view.part)
             if mask.sum() < self.cfg.part_min_pixels * (self.input_cam.width / 512.0) ** 2 / 4:
                 return None
             window = crop_window(mask, view.part)
             image = crop_image(self.input_image, window, size)[None]
-        return image, crop_image(torch.as_tensor(mask, dtype=torch.float32)[None], window, size)
+        return image, crop_image(self.tensor(mask)[None], window, size)
 
     # ---- checkpoints, previews, guards ------------------------------------------------------------------
     def checkpoint_path(self) -> Path:
@@ -444,7 +453,8 @@ class Fitter:
     def input_coverage(self, size: int = 96) -> float:
         """Mean rendered alpha inside the input mask, at low resolution (the empty-render check)."""
         cam = self.input_cam.scaled(size / max(self.input_cam.width, self.input_cam.height))
-        alpha = self.render(cam, self.subject.input_index, torch.zeros(3), ("alpha",), grad=False)["alpha"][0]
+        black = torch.zeros(3, device=self.device)
+        alpha = self.render(cam, self.subject.input_index, black, ("alpha",), grad=False)["alpha"][0]
         mask = F.interpolate(self.input_mask[None, None], size=alpha.shape, mode="area")[0, 0] > 0.5
         return float(alpha[mask].mean()) if mask.any() else 1.0
 
@@ -484,7 +494,7 @@ class Fitter:
         ring = [self.ring[round(k * len(self.ring) / 4)] for k in (1, 2, 3)]
         cams += [c.scaled(size / c.width) for c in ring]
         target = F.interpolate(self.input_image[None], size=(cams[0].height, cams[0].width), mode="area")[0]
-        tiles = [target.permute(1, 2, 0).numpy()]
+        tiles = [target.permute(1, 2, 0).cpu().numpy()]
         frames = [self.subject.input_index, self.frames[len(self.frames) // 2]]
         for f in frames:
             for cam in cams:
@@ -572,7 +582,7 @@ class Fitter:
             "final_losses": self.stats.losses,
             "semantic_references_skipped": self.stats.skipped_semantic,
             "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-            "device": "cpu",
+            "device": str(self.device),
             "torch_threads": torch.get_num_threads(),
         }
         write_json(self.run_dir / "run.json", report)

@@ -45,25 +45,28 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 7) -> torch.Tensor:
     return s.mean()
 
 
+def load_lpips(device: torch.device | str = "cpu"):
+    """LPIPS(VGG) if the ``lpips`` package and its weights are on disk, else None; plus the reason."""
+    try:
+        import lpips  # optional: needs its VGG weights on disk
+
+        model = lpips.LPIPS(net="vgg", verbose=False).eval().to(device)
+    except Exception as exc:  # not installed, or the weights cannot be loaded offline
+        return None, f"LPIPS(VGG) unavailable ({type(exc).__name__}: {str(exc)[:120]})"
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model, ""
+
+
 class Perceptual:
     """``1 - SSIM`` or LPIPS(VGG); ``name`` says which one is in use."""
 
-    def __init__(self, kind: str = "auto") -> None:
-        self.lpips = None
-        self.reason = ""
-        if kind in ("auto", "lpips"):
-            try:
-                import lpips  # optional: needs its VGG weights on disk
+    def __init__(self, kind: str = "auto", device: torch.device | str = "cpu") -> None:
+        self.lpips, self.reason = (None, "requested by config") if kind == "ssim" else load_lpips(device)
+        if kind == "lpips" and self.lpips is None:
+            from .errors import ElicitError
 
-                self.lpips = lpips.LPIPS(net="vgg", verbose=False).eval()
-                for p in self.lpips.parameters():
-                    p.requires_grad_(False)
-            except Exception as exc:  # not installed, or the weights cannot be loaded offline
-                if kind == "lpips":
-                    from .errors import ElicitError
-
-                    raise ElicitError(f"perceptual=lpips but LPIPS(VGG) is unavailable: {exc}") from exc
-                self.reason = f"LPIPS unavailable ({type(exc).__name__}: {str(exc)[:120]})"
+            raise ElicitError(f"perceptual=lpips but {self.reason}")
         self.name = "lpips-vgg" if self.lpips is not None else "ssim (weights-free)"
 
     def __call__(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

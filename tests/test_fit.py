@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from elicit_diffrender.animate import load_avatar
 from elicit_diffrender.avatar import Avatar, AvatarError
 from elicit_diffrender.config import ConfigError, make_config
 from elicit_diffrender.evaluate import psnr
@@ -65,7 +66,7 @@ def test_crop_camera_renders_exactly_the_crop(tiny_subject, tiny_avatar):
 
 def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
     path = tiny_avatar.save(tmp_path / "a.pt")
-    back = Avatar.load(path)
+    back = load_avatar(path)
     cam = tiny_subject.cameras["cam01"].scaled(0.5)
     frames = back.pose_frames(*tiny_subject.motion.frame(2))
     np.testing.assert_array_equal(
@@ -75,7 +76,7 @@ def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
     assert data["format"] == "elicit-avatar/1" and data["body"]["model"] == "anny"
     (tmp_path / "bad.pt").write_bytes(b"junk")
     with pytest.raises(AvatarError, match="unreadable"):
-        Avatar.load(tmp_path / "bad.pt")
+        load_avatar(tmp_path / "bad.pt")
 
 
 def test_config_presets_files_and_overrides(tmp_path):
