@@ -20,7 +20,7 @@ from .errors import ElicitError
 from .io import atomic_write
 from .skinning import axis_angle_to_matrix, matrix_to_axis_angle
 
-BUILTIN_MOTIONS = ("walk_in_place", "turn_around", "wave", "squat", "rest")
+BUILTIN_MOTIONS = ("walk_in_place", "turn_around", "wave", "squat", "rest", "anny_walk")
 
 
 class MotionError(ElicitError):
@@ -180,7 +180,14 @@ def _pose_all(body: BodyModel, pose, orient, transl):
 
 
 def builtin_motion(name: str, body: BodyModel, n_frames: int | None = None) -> Motion:
-    """A built-in motion for ``body``: walk_in_place, turn_around, wave, squat or rest."""
+    """A built-in motion for ``body``: walk_in_place, turn_around, wave, squat, rest, or anny_walk (Anny's
+    shipped walk cycle, Anny bodies only)."""
+    if name == "anny_walk":
+        if body.name != "anny":
+            raise MotionError(f"motion 'anny_walk' is Anny's walk cycle; it needs an Anny body, not {body.name!r}")
+        from .body.anny_walk import anny_walk_cycle
+
+        return anny_walk_cycle(body, n_frames or 40)[0]
     frames: dict[str, tuple[int, Callable[[float], dict]]] = {
         "walk_in_place": (30, _walk_frame),
         "turn_around": (48, _walk_frame),

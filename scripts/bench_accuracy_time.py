@@ -27,20 +27,20 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = "cpu-fast"
-SWEEP: dict[str, list[str]] = {
+SWEEP: dict[str, list[str]] = {  # the most telling points first
     "cpu-fast": [],
-    "voxel 2.4 cm": ["voxel_size=0.024"],
-    "voxel 1.2 cm": ["voxel_size=0.012"],
     "24 samples": ["samples_per_ray=24"],
-    "96 samples": ["samples_per_ray=96"],
-    "no early stop": ["t_thresh=0"],
-    "early stop 1e-2": ["t_thresh=0.01"],
-    "no occupancy skipping": ["occupancy_cell=0"],
-    "crop 48": ["crop_size=48"],
-    "crop 96": ["crop_size=96"],
     "1000 steps": ["steps=1000"],
-    "6000 steps": ["steps=6000"],
+    "voxel 2.4 cm": ["voxel_size=0.024"],
+    "no occupancy skipping": ["occupancy_cell=0"],
+    "no early stop": ["t_thresh=0"],
+    "crop 48": ["crop_size=48"],
     "no semantic encoder": ["w_semantic=0"],
+    "96 samples": ["samples_per_ray=96"],
+    "voxel 1.2 cm": ["voxel_size=0.012"],
+    "crop 96": ["crop_size=96"],
+    "early stop 1e-2": ["t_thresh=0.01"],
+    "6000 steps": ["steps=6000"],
     "paper preset, reduced budget": [
         "@paper",
         "init_steps=150",
@@ -193,6 +193,7 @@ def plot(points: list[dict], front: list[str], path: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--points", nargs="+", choices=tuple(SWEEP), metavar="NAME", help="only these fit points")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "accuracy_time")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = ap.parse_args()
@@ -204,7 +205,7 @@ def main() -> int:
     subject = args.work / "subject_0"
     if not (subject / "subject.json").is_file():
         run([elicit, "synth", "--seed", "0", "--out", str(subject)], args.work / "synth.log")
-    names = QUICK if args.quick else tuple(SWEEP)
+    names = args.points or (QUICK if args.quick else tuple(SWEEP))
     points = []
     for name in names:
         print(f"fit point: {name}", flush=True)

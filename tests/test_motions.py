@@ -102,3 +102,25 @@ def test_amass_and_zju_sequences(tmp_path, smpl_file):
     assert z.frame_ids.tolist() == [0, 5, 10] and np.all(z.pose[:, 0] == 0)
     anny_like = Motion(np.zeros((1, 104, 3)), np.zeros((1, 3)), np.zeros((1, 3)))
     assert len(anny_like) == 1
+
+
+def test_anny_walk_cycle_reaches_its_targets_and_loops(anny_body, smpl_file):
+    from elicit_diffrender.body.anny_walk import anny_walk_cycle
+
+    b = anny_body
+    m, reach = anny_walk_cycle(b, 40)
+    assert m.pose.shape == (40, 104, 3) and np.isfinite(m.pose).all() and np.isfinite(m.transl).all()
+    # The IK lands the feet and hands on the clip's targets (Anny's legs differ slightly from MPFB's).
+    for target in ("left_foot_ik", "right_foot_ik", "left_hand_ik", "right_hand_ik"):
+        assert reach[target] < 0.05, (target, reach[target])
+    posed = b.pose_batch(m.pose, m.global_orient, m.transl)
+    l_ankle, r_ankle = (b.joint_index(b.semantic[k]) for k in ("l_ankle", "r_ankle"))
+    stride = np.array([p.bone_transforms[l_ankle, 2, 3] - p.bone_transforms[r_ankle, 2, 3] for p in posed])
+    assert stride.max() > 0.2 and stride.min() < -0.2  # the feet take turns in front (+z)
+    # It loops: the last frame leads smoothly into the first.
+    step = np.abs(np.diff(m.pose, axis=0)).max()
+    assert np.abs(m.pose[0] - m.pose[-1]).max() < 2 * step
+    floor = b.rest_vertices[:, 1].min()
+    assert abs(min(p.vertices[:, 1].min() for p in posed) - floor) < 1e-6
+    with pytest.raises(MotionError, match="Anny body"):
+        builtin_motion("anny_walk", load_body({"model": "smpl", "model_path": str(smpl_file)}))
