@@ -88,3 +88,28 @@ def test_render_requests_are_checked():
         r.render(np.asarray(mesh.vertices), cams + ring_cameras(n=1, width=8, height=8), ("mask",))
     with pytest.raises(RenderError, match="vertices"):
         r.render(np.zeros((3, 3)), cams, ("mask",))
+
+
+def test_differentiable_silhouette_covers_the_mask_and_grows_toward_a_larger_target():
+    import torch
+
+    from elicit_diffrender.cameras import Camera
+    from elicit_diffrender.mesh_render import DifferentiableSilhouette
+
+    # A 1 m square at z = 0 seen from 3 m: about 21 x 21 pixels in the middle of a 64 x 64 image.
+    verts = torch.tensor([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]], requires_grad=True)
+    faces = np.array([[0, 2, 1], [0, 3, 2]])  # facing the camera (emitters are one-sided)
+    cam = Camera(np.array([[64.0, 0, 32], [0, 64.0, 32], [0, 0, 1]]), np.eye(3), np.array([0.0, 0.0, 3.0]), 64, 64)
+    render = DifferentiableSilhouette(faces, 4, cam, spp=16)
+    a = render(verts)
+    assert a.shape == (64, 64) and torch.isfinite(a).all() and float(a.min()) >= 0 and float(a.max()) <= 1
+    area = (64.0 / 3.0) ** 2  # the square's projected area in pixels (anti-aliased coverage)
+    assert abs(float(a.sum()) - area) < 0.02 * area
+    exact = MeshRenderer(faces).render(verts.detach().numpy(), [cam], ("mask",))["mask"][0]
+    assert (a.detach().numpy()[exact > 0] > 0.2).all()  # it lies where the exact silhouette does
+    # A larger target square: lowering the loss means moving every corner outwards.
+    target = torch.zeros(64, 64)
+    target[16:48, 16:48] = 1.0
+    ((a - target) ** 2).mean().backward()
+    outward = (verts.grad[:, :2] * verts.detach()[:, :2]).sum(1)
+    assert (outward < 0).all(), verts.grad

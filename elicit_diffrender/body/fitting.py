@@ -212,11 +212,39 @@ class ImageTargets:
         )
 
 
+def _rendered_silhouette_loss(fit: AnnyFit, K: np.ndarray, mask: np.ndarray, other, size: int):
+    """``other() + 4 * mean((A - M)^2)`` with A the body's differentiable Mitsuba silhouette."""
+    from ..cameras import Camera
+    from ..mesh_render import DifferentiableSilhouette
+
+    h, w = mask.shape
+    camera = Camera(K, np.eye(3), np.zeros(3), w, h).scaled(min(1.0, size / max(w, h)))
+    faces = fit.model.get_triangular_faces().cpu().numpy()
+    render = DifferentiableSilhouette(faces, int(fit.model.template_vertices.shape[-2]), camera)
+    target = F.interpolate(
+        torch.as_tensor(mask, dtype=torch.float32)[None, None], size=(camera.height, camera.width), mode="area"
+    )[0, 0]
+
+    def loss():
+        verts, _ = fit()
+        return other() + 4.0 * ((render(verts) - target) ** 2).mean()
+
+    return loss
+
+
 def fit_anny_to_image(
-    K: np.ndarray, mask: np.ndarray, keypoints: np.ndarray | None, joints3d: np.ndarray | None = None, steps: int = 400
+    K: np.ndarray,
+    mask: np.ndarray,
+    keypoints: np.ndarray | None,
+    joints3d: np.ndarray | None = None,
+    steps: int = 400,
+    render_steps: int = 40,
+    render_size: int = 160,
 ) -> dict:
     """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
-    visibility, pixels) and/or camera-space SMPL joints, then the silhouette."""
+    visibility, pixels) and/or camera-space SMPL joints, then the silhouette: first a fast
+    point-to-mask distance, then ``render_steps`` steps on a differentiable Mitsuba silhouette
+    rendered with the longer image side at ``render_size`` pixels."""
     if keypoints is None and joints3d is None:
         raise ValueError("the image fit needs 2D keypoints or 3D joints")
     targets = ImageTargets(K, mask, keypoints)
@@ -326,6 +354,9 @@ def fit_anny_to_image(
 
     _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
     _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
+    if render_steps > 0:
+        _optimise(fit, list(fit.parameters()), _rendered_silhouette_loss(fit, K, mask, fine(False), render_size),
+                  render_steps, 0.005)  # fmt: skip
     with torch.no_grad():
         verts, heads = fit()
         report = {}
