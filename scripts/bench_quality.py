@@ -52,7 +52,8 @@ LIKELY_REASON = {
     "as part crops",
     "without silhouette loss": "the synthetic clothing is tight, so the body prior rarely disagrees with the subject",
     "hard silhouette constraint": "the synthetic clothing is tight (1-2 cm), so a hard body silhouette costs little",
-    "input pose only": "the evaluated novel poses are close to the training motion's poses",
+    "input pose only": "the novel-view split renders the input frame, the one pose this ablation trains on; the "
+    "motion weights come from the body prior and stay fixed, so novel poses gain little from training on them",
     "without body-render initialisation": "",
     "body mesh with explicit texture": "the synthetic subjects wear tight clothes over the same body model, which "
     "favours a textured body mesh",
