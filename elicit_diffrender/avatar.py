@@ -19,12 +19,13 @@ from .body import BodyModel, load_body
 from .body.template import vertex_normals
 from .cameras import Camera
 from .errors import ElicitError
-from .field import CanonicalField, MotionWeights, grid_points
+from .field import CanonicalField, MotionWeights, grid_points, grid_shape
 from .io import atomic_write
 from .skinning import axis_angle_to_matrix, inverse_lbs, rigid_inverse
 from .volume import composite, sample_rays
 
 FORMAT = "elicit-avatar/1"
+BOUNDS_CELL = 0.04  # metres: lattice that bounds the posed body when occupancy skipping is off
 
 
 class AvatarError(ElicitError):
@@ -153,13 +154,15 @@ class Avatar(nn.Module):
         """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells."""
         f = self.field
         dev = self.device
-        cells = torch.as_tensor(
-            grid_points(f.box.double().cpu(), tuple(f.occupancy.shape)), dtype=torch.float32, device=dev
-        )
-        occupied = cells[f.occupancy.bool()] if f.occupancy_cell > 0 else cells.reshape(-1, 3)
+        skipping = f.occupancy_cell > 0
+        # Without skipping, the whole canonical box is bounded through a lattice of BOUNDS_CELL cells.
+        cell = f.occupancy_cell if skipping else BOUNDS_CELL
+        shape = tuple(f.occupancy.shape) if skipping else grid_shape(f.box.cpu(), cell)
+        cells = torch.as_tensor(grid_points(f.box.double().cpu(), shape), dtype=torch.float32, device=dev)
+        occupied = cells[f.occupancy.bool()] if skipping else cells.reshape(-1, 3)
         if occupied.shape[0] == 0:
             occupied = cells.reshape(-1, 3)
-        step = max(f.occupancy_cell, f.voxel_size) / 4.0
+        step = max(cell, f.voxel_size) / 4.0
         offsets = torch.tensor(
             [[x, y, z] for x in (-step, step) for y in (-step, step) for z in (-step, step)], device=dev
         )
@@ -168,9 +171,9 @@ class Avatar(nn.Module):
         w = w / w.sum(1, keepdim=True).clamp(min=1e-6)
         can_to_obs = frames @ rigid_inverse(self.canonical_frames)
         posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
-        pad = margin + max(f.occupancy_cell, f.voxel_size)
+        pad = margin + max(cell, f.voxel_size)
         box = torch.stack([posed.min(0).values - pad, posed.max(0).values + pad])
-        if f.occupancy_cell <= 0:
+        if not skipping:
             return box, None
         shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (box[1] - box[0]))
         size = torch.tensor(shape, device=dev)

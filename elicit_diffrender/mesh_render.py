@@ -255,8 +255,9 @@ class DifferentiableSilhouette:
     """A mesh's anti-aliased silhouette through one camera, differentiable with respect to the vertices.
 
     Mitsuba's ``direct_projective`` integrator renders the mesh as a unit emitter (no shading, no light
-    transport; triangles are seen from their front, as a closed body's are) and samples the visibility discontinuities at its outline, so the gradient reaches
-    vertices on the silhouette; ``torch`` tensors go in and come out through ``dr.wrap``.
+    transport; triangles are seen from their front, as a closed body's are) and samples the visibility
+    discontinuities at its outline, so the gradient reaches vertices on the silhouette;
+    ``torch`` tensors go in and come out through ``dr.wrap``.
     """
 
     def __init__(self, faces: np.ndarray, n_vertices: int, camera: Camera, spp: int = 4) -> None:

@@ -165,26 +165,27 @@ def plot(points: list[dict], front: list[str], path: Path) -> None:
 
     from elicit_diffrender.io import atomic_write
 
-    fig, ax = plt.subplots(figsize=(8, 5))
-    for p in points:
+    fig, ax = plt.subplots(figsize=(10, 5))
+    for i, p in enumerate(points, 1):  # numbered points, named in the legend: the cluster stays legible
         on = p["name"] in front
         preset = p["name"] in ("cpu-fast", "paper preset, reduced budget")
         ax.scatter(
             p["fit_s"] / 60,
             p["psnr"],
-            s=90 if preset else 40,
+            s=110 if preset else 45,
             marker="*" if preset else "o",
             color="tab:red" if preset else ("tab:blue" if on else "tab:gray"),
             zorder=3,
+            label=f"{i}: {p['name']}",
         )
-        ax.annotate(p["name"], (p["fit_s"] / 60, p["psnr"]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+        ax.annotate(str(i), (p["fit_s"] / 60, p["psnr"]), fontsize=8, xytext=(4, 4), textcoords="offset points")
     fr = sorted([p for p in points if p["name"] in front], key=lambda p: p["fit_s"])
     ax.plot([p["fit_s"] / 60 for p in fr], [p["psnr"] for p in fr], "-", color="tab:blue", label="Pareto front")
     ax.set_xlabel("fit wall time on this CPU (min)")
     ax.set_ylabel("novel-view PSNR (dB)")
     ax.set_title("What accuracy costs in time (stars: presets)")
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     atomic_write(path, lambda p: fig.savefig(p, dpi=120, format="png"))
     plt.close(fig)

@@ -64,6 +64,22 @@ def test_crop_camera_renders_exactly_the_crop(tiny_subject, tiny_avatar):
     )
 
 
+def test_without_occupancy_skipping_the_body_is_still_rendered(tiny_subject, tiny_avatar):
+    """occupancy_cell=0 bounds the whole canonical box: same image as with skipping, never an empty one."""
+    cfg = make_config("cpu-fast", None, TINY)
+    plain = Avatar.from_body(tiny_subject.body, tiny_subject.body_spec, cfg.voxel_size, occupancy_cell=0, weight_res=16)
+    cam = tiny_subject.cameras["cam00"].scaled(0.5)
+    frames = plain.pose_frames(*tiny_subject.motion.frame(3))
+    box, occ = plain.observation_space(frames)
+    skip_box, _ = tiny_avatar.observation_space(frames)
+    slack = 0.03  # pads and lattice offsets follow the cell: 6 cm cells (skipping) against 4 cm (bounds)
+    assert occ is None and (box[0] <= skip_box[0] + slack).all() and (box[1] >= skip_box[1] - slack).all()
+    a = plain.render_image(cam, frames, 64)["alpha"]
+    b = tiny_avatar.render_image(cam, frames, 64)["alpha"]
+    assert a.mean() > 0.05
+    assert np.abs(a - b).mean() < 0.02
+
+
 def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
     path = tiny_avatar.save(tmp_path / "a.pt")
     back = load_avatar(path)
