@@ -56,6 +56,7 @@ class FitConfig:
     steps: int = 3000
     lr: float = 0.03
     lr_decay: float = 0.1  # total decay over the stage (exponential)
+    stage2_density_lr: float = 1.0  # stage 2's density learning rate, as a multiple of lr (colour keeps lr)
     motion_weights_lr: float = 1e-3
     p_novel: float = 0.5
     train_frame_step: int = 4  # novel poses: every k-th frame of the target motion

@@ -218,7 +218,12 @@ class Fitter:
         return PriorViews(self.frames, self.ring, np.stack(colors), np.stack(alphas), np.stack(labels), np.array(yaws))
 
     def make_optimizer(self, lr: float) -> None:
-        groups = [{"params": [self.avatar.field.density, self.avatar.field.color], "lr": lr, "base_lr": lr}]
+        f = self.avatar.field
+        density_lr = lr * (self.cfg.stage2_density_lr if self.stage == 2 else 1.0)
+        groups = [
+            {"params": [f.density], "lr": density_lr, "base_lr": density_lr},
+            {"params": [f.color], "lr": lr, "base_lr": lr},
+        ]
         if self.cfg.learn_motion_weights:
             groups.append(
                 {

@@ -127,6 +127,19 @@ def test_empty_render_guard_restores_and_lowers_the_lr(tmp_path, tiny_subject):
     assert len(fitter.stats.recoveries) == 1
 
 
+def test_stage2_density_lr_scales_only_the_density(tmp_path, tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY + ["stage2_density_lr=0.1"])
+    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
+    fitter.prepare()
+    lrs = {id(g["params"][0]): g["lr"] for g in fitter.opt.param_groups}
+    field = fitter.avatar.field
+    assert lrs[id(field.density)] == lrs[id(field.color)] == cfg.init_lr  # stage 1 is untouched
+    fitter.stage = 2
+    fitter.make_optimizer(cfg.lr)
+    lrs = {id(g["params"][0]): g["lr"] for g in fitter.opt.param_groups}
+    assert lrs[id(field.density)] == pytest.approx(0.1 * cfg.lr) and lrs[id(field.color)] == cfg.lr
+
+
 def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["p_novel=0.3"])
     fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
