@@ -26,6 +26,8 @@ SMPL_TO_ANNY = {
     19: "lowerarm01.R", 20: "wrist.L", 21: "wrist.R",
 }  # fmt: skip
 TORSO_SMPL = (0, 1, 2, 12, 16, 17)
+RENDER_STEPS = 40  # steps on the differentiable Mitsuba silhouette
+RENDER_SIZE = 160  # its longer image side, pixels
 FREE_JOINTS = (
     "spine04",
     "spine03",
@@ -238,8 +240,8 @@ def fit_anny_to_image(
     keypoints: np.ndarray | None,
     joints3d: np.ndarray | None = None,
     steps: int = 400,
-    render_steps: int = 40,
-    render_size: int = 160,
+    render_steps: int = RENDER_STEPS,
+    render_size: int = RENDER_SIZE,
 ) -> dict:
     """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
     visibility, pixels) and/or camera-space SMPL joints, then the silhouette: first a fast
