@@ -12,6 +12,7 @@ A run folder holds ``checkpoint.pt`` (resumable), ``avatar.pt`` (the result), ``
 from __future__ import annotations
 
 import logging
+import pickle
 import resource
 import time
 from dataclasses import dataclass, field
@@ -440,14 +441,20 @@ class Fitter:
         path = self.checkpoint_path()
         if not path.is_file():
             return False
-        data = torch.load(path, map_location="cpu", weights_only=False)
-        self.avatar.load_state_dict(data["avatar"]["tensors"])
-        self.stage, self.step, self.lr_scale = data["stage"], data["step"], data["lr_scale"]
-        self.make_optimizer(self.cfg.lr if self.stage == 2 else self.cfg.init_lr)
-        self.opt.load_state_dict(data["optimizer"])
-        self.rng.bit_generator.state = data["rng"]
-        torch.set_rng_state(data["torch_rng"])
-        self.stats.__dict__.update(data["stats"])
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=False)
+            self.avatar.load_state_dict(data["avatar"]["tensors"])
+            self.stage, self.step, self.lr_scale = data["stage"], data["step"], data["lr_scale"]
+            self.make_optimizer(self.cfg.lr if self.stage == 2 else self.cfg.init_lr)
+            self.opt.load_state_dict(data["optimizer"])  # fails on another version's parameter groups
+            self.rng.bit_generator.state = data["rng"]
+            torch.set_rng_state(data["torch_rng"])
+            self.stats.__dict__.update(data["stats"])
+        except (OSError, EOFError, KeyError, TypeError, ValueError, RuntimeError, pickle.UnpicklingError) as exc:
+            raise FitError(
+                f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {exc}); "
+                "delete it, or fit without --resume"
+            ) from exc
         log.info("resumed from %s at stage %d step %d", path, self.stage, self.step)
         return True
 

@@ -15,7 +15,7 @@ from elicit_diffrender.animate import load_avatar
 from elicit_diffrender.avatar import Avatar, AvatarError
 from elicit_diffrender.config import ConfigError, make_config
 from elicit_diffrender.evaluate import psnr
-from elicit_diffrender.fit import Fitter, crop_image
+from elicit_diffrender.fit import FitError, Fitter, crop_image
 from elicit_diffrender.subject import load_subject
 from elicit_diffrender.synth import synthesize
 
@@ -138,6 +138,23 @@ def test_stage2_density_lr_scales_only_the_density(tmp_path, tiny_subject):
     fitter.make_optimizer(cfg.lr)
     lrs = {id(g["params"][0]): g["lr"] for g in fitter.opt.param_groups}
     assert lrs[id(field.density)] == pytest.approx(0.1 * cfg.lr) and lrs[id(field.color)] == cfg.lr
+
+
+def test_unusable_checkpoint_gives_a_clear_error(tmp_path, tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY)
+    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
+    fitter.prepare()
+    fitter.save_checkpoint()
+    data = torch.load(fitter.checkpoint_path(), weights_only=False)
+    # An older layout: density and colour in one parameter group.
+    groups = data["optimizer"]["param_groups"]
+    groups[0]["params"] += groups.pop(1)["params"]
+    torch.save(data, fitter.checkpoint_path())
+    with pytest.raises(FitError, match=r"checkpoint\.pt: cannot resume"):
+        fitter.load_checkpoint()
+    fitter.checkpoint_path().write_bytes(b"junk")
+    with pytest.raises(FitError, match=r"checkpoint\.pt: cannot resume"):
+        fitter.load_checkpoint()
 
 
 def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
