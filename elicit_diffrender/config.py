@@ -70,6 +70,7 @@ class FitConfig:
     w_edge: float = 0.01
     w_tv: float = 1e-2  # grid smoothness (no counterpart in the MLP-based paper)
     w_sparsity: float = 0.1  # stage 2: density outside the body costs a little (no counterpart in the paper)
+    w_opacity: float = 0.2  # stage 2: binary-entropy prior on novel-view crop opacity (no counterpart in the paper)
     perceptual: str = "auto"  # "auto" (LPIPS if its weights are present, else SSIM), "lpips", "ssim"
     # --- semantic encoder --------------------------------------------------------------------------
     encoder: str = "auto"  # "auto", "clip" or "random-features"

@@ -3,7 +3,8 @@
 Stage 1 trains the avatar to reproduce Mitsuba renders of the template-textured body over the
 target motion from a ring of cameras. Stage 2 alternates (p = 0.5) between a patch of the input
 image (MSE + perceptual) and a novel (pose, camera) crop chosen by hybrid sampling, supervised by
-the semantic loss against a reference crop and the soft silhouette loss against the body.
+the semantic loss against a reference crop, the soft silhouette and edge losses against the body
+and (not in the paper) a binary-entropy prior on the crop's opacity.
 
 A run folder holds ``checkpoint.pt`` (resumable), ``avatar.pt`` (the result), ``run.json``,
 ``log.txt`` and ``previews/``.
@@ -31,7 +32,7 @@ from .device import default_device
 from .encoders import load_encoder
 from .errors import ElicitError
 from .io import atomic_write, write_image, write_json
-from .losses import Perceptual, edge_distance, edge_loss, mse, semantic_loss, silhouette_loss
+from .losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from .mesh_render import MeshAppearance, MeshRenderer
 from .rigs import place_cameras, read_rig, shipped_rig_path
 from .sampling import body_yaw, crop_window, part_pixels, plan_novel_view
@@ -354,7 +355,7 @@ class Fitter:
         return loss, terms
 
     def novel_step(self) -> tuple[torch.Tensor, dict] | None:
-        """A hybrid-sampled novel (pose, camera) crop: semantic + soft silhouette losses."""
+        """A hybrid-sampled novel (pose, camera) crop: semantic, soft silhouette, edge and opacity losses."""
         cfg = self.cfg
         fi = int(self.rng.integers(len(self.frames)))
         labels = list(self.prior.labels[fi].astype(np.int16))
@@ -379,6 +380,10 @@ class Fitter:
             e = edge_loss(out["alpha"], mask[None], dist[None])
             loss = loss + self.w_edge * e
             terms["edge"] = float(e.detach())
+        if cfg.w_opacity > 0:
+            ent = opacity_entropy(out["alpha"])
+            loss = loss + cfg.w_opacity * ent
+            terms["opacity"] = float(ent.detach())
         if self.encoder is not None and (self.w_semantic > 0 or self.text_embedding is not None):
             ref = self.reference(view, fi)
             if ref is None:

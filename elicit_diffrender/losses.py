@@ -5,7 +5,9 @@
 * semantic: ``1 - cos(E(reference), E(render))`` for an image encoder ``E``;
 * soft silhouette: ``mean((M - A)^2 * M)`` punishes only missing density inside the body mask, so
   clothing may extend past the body; the one-way edge term pulls the render's silhouette edge
-  towards the mask's edge, weighted by the mask edge's distance transform (both as the reference code).
+  towards the mask's edge, weighted by the mask edge's distance transform (both as the reference code);
+* opacity entropy: a binary-entropy prior on a render's accumulated opacity (not in the paper; a grid
+  spreads half-transparent density where an MLP would not).
 """
 
 from __future__ import annotations
@@ -102,6 +104,12 @@ def edge_loss(alpha: torch.Tensor, mask: torch.Tensor, dist: torch.Tensor) -> to
     """``sum(edge(A) * dist) / sum(edge(A))`` with edge(A) kept inside the mask (reference code)."""
     e = edge(alpha) * mask
     return (e * dist).sum() / e.sum().clamp(min=1e-6)
+
+
+def opacity_entropy(alpha: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
+    """Mean binary entropy of the accumulated opacity: pushes half-transparent pixels to 0 or 1."""
+    a = alpha.clamp(eps, 1 - eps)
+    return -(a * a.log() + (1 - a) * (1 - a).log()).mean()
 
 
 def tv_image(x: torch.Tensor) -> torch.Tensor:

@@ -87,7 +87,7 @@ def prepare(
     params_path: str | Path | None = None,
     focal: float | None = None,
     motion: str = "walk_in_place",
-    steps: int = 400,
+    steps: int = 240,
 ) -> dict:
     """Build a subject from one photo; returns the fit report (also ``fit_report.json``)."""
     from .body.fitting import fit_anny_to_image

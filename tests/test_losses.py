@@ -2,7 +2,15 @@
 
 import torch
 
-from elicit_diffrender.losses import Perceptual, edge_distance, edge_loss, semantic_loss, silhouette_loss, ssim
+from elicit_diffrender.losses import (
+    Perceptual,
+    edge_distance,
+    edge_loss,
+    opacity_entropy,
+    semantic_loss,
+    silhouette_loss,
+    ssim,
+)
 
 
 def square_mask(n=32, lo=8, hi=24):
@@ -34,6 +42,16 @@ def test_edge_term_pulls_a_shrunken_silhouette_outwards():
     edge_loss(alpha, mask, dist).backward()
     ring = (torch.nn.functional.max_pool2d(small[None], 3, 1, 1)[0] - small) > 0  # just outside the render
     assert alpha.grad[ring].mean() < 0  # growing the render into the body lowers the loss
+
+
+def test_opacity_entropy_pushes_half_transparent_pixels_to_empty_or_solid():
+    solid_or_empty = torch.tensor([0.0, 1.0, 1.0, 0.0])
+    assert opacity_entropy(solid_or_empty) < 2e-3
+    assert abs(float(opacity_entropy(torch.full((4,), 0.5))) - float(torch.log(torch.tensor(2.0)))) < 1e-6
+    alpha = torch.tensor([0.0, 0.2, 0.8, 1.0], requires_grad=True)  # the hard cases 0 and 1 included
+    opacity_entropy(alpha).backward()
+    assert torch.isfinite(alpha.grad).all()
+    assert alpha.grad[1] > 0 and alpha.grad[2] < 0  # a gradient step moves 0.2 down and 0.8 up
 
 
 def test_semantic_loss_value_and_gradient():

@@ -26,8 +26,10 @@ SMPL_TO_ANNY = {
     19: "lowerarm01.R", 20: "wrist.L", 21: "wrist.R",
 }  # fmt: skip
 TORSO_SMPL = (0, 1, 2, 12, 16, 17)
-RENDER_STEPS = 40  # steps on the differentiable Mitsuba silhouette
+RENDER_STEPS = 120  # steps on the differentiable Mitsuba silhouette
 RENDER_SIZE = 160  # its longer image side, pixels
+RENDER_LR = 0.01  # Adam step size on the differentiable silhouette
+RENDER_WEIGHT = 12.0  # its weight against the keypoint and prior terms
 FREE_JOINTS = (
     "spine04",
     "spine03",
@@ -215,7 +217,7 @@ class ImageTargets:
 
 
 def _rendered_silhouette_loss(fit: AnnyFit, K: np.ndarray, mask: np.ndarray, other, size: int):
-    """``other() + 4 * mean((A - M)^2)`` with A the body's differentiable Mitsuba silhouette."""
+    """``other() + RENDER_WEIGHT * mean((A - M)^2)`` with A the body's differentiable Mitsuba silhouette."""
     from ..cameras import Camera
     from ..mesh_render import DifferentiableSilhouette
 
@@ -229,7 +231,7 @@ def _rendered_silhouette_loss(fit: AnnyFit, K: np.ndarray, mask: np.ndarray, oth
 
     def loss():
         verts, _ = fit()
-        return other() + 4.0 * ((render(verts) - target) ** 2).mean()
+        return other() + RENDER_WEIGHT * ((render(verts) - target) ** 2).mean()
 
     return loss
 
@@ -239,7 +241,7 @@ def fit_anny_to_image(
     mask: np.ndarray,
     keypoints: np.ndarray | None,
     joints3d: np.ndarray | None = None,
-    steps: int = 400,
+    steps: int = 240,
     render_steps: int = RENDER_STEPS,
     render_size: int = RENDER_SIZE,
 ) -> dict:
@@ -358,7 +360,7 @@ def fit_anny_to_image(
     _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
     if render_steps > 0:
         _optimise(fit, list(fit.parameters()), _rendered_silhouette_loss(fit, K, mask, fine(False), render_size),
-                  render_steps, 0.005)  # fmt: skip
+                  render_steps, RENDER_LR)  # fmt: skip
     with torch.no_grad():
         verts, heads = fit()
         report = {}
