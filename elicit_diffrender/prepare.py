@@ -87,10 +87,11 @@ def prepare(
     params_path: str | Path | None = None,
     focal: float | None = None,
     motion: str = "walk_in_place",
-    steps: int = 240,
+    steps: int | None = None,
 ) -> dict:
-    """Build a subject from one photo; returns the fit report (also ``fit_report.json``)."""
-    from .body.fitting import fit_anny_to_image
+    """Build a subject from one photo; returns the fit report (also ``fit_report.json``). ``steps``
+    overrides the body fit's ``FIT_STEPS``."""
+    from .body.fitting import FIT_STEPS, fit_anny_to_image
     from .importers import motion_with_input_frame
 
     t0 = time.perf_counter()
@@ -145,7 +146,7 @@ def prepare(
         raise PrepareError(f"{photo}: no person found by MediaPipe")
     sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
     sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
-    fit = fit_anny_to_image(K, mask, landmarks, joints3d, steps=steps)
+    fit = fit_anny_to_image(K, mask, landmarks, joints3d, steps=FIT_STEPS if steps is None else steps)
     body = fit["body"]
     spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
     motion_obj = motion_with_input_frame(

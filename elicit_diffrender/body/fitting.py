@@ -26,6 +26,7 @@ SMPL_TO_ANNY = {
     19: "lowerarm01.R", 20: "wrist.L", 21: "wrist.R",
 }  # fmt: skip
 TORSO_SMPL = (0, 1, 2, 12, 16, 17)
+FIT_STEPS = 240  # keypoint steps, then as many with the point-to-mask silhouette (half each)
 RENDER_STEPS = 120  # steps on the differentiable Mitsuba silhouette
 RENDER_SIZE = 160  # its longer image side, pixels
 RENDER_LR = 0.01  # Adam step size on the differentiable silhouette
@@ -241,7 +242,7 @@ def fit_anny_to_image(
     mask: np.ndarray,
     keypoints: np.ndarray | None,
     joints3d: np.ndarray | None = None,
-    steps: int = 240,
+    steps: int = FIT_STEPS,
     render_steps: int = RENDER_STEPS,
     render_size: int = RENDER_SIZE,
 ) -> dict:
