@@ -41,7 +41,7 @@ class FitConfig:
     samples_per_ray: int = 48
     t_thresh: float = 1e-3  # early ray termination
     input_scale: float = 0.5  # the input image is used at this scale (HumanNeRF: 0.5)
-    crop_size: int = 64  # side of training crops and patches, pixels
+    crop_size: int = 48  # side of training crops and patches, pixels (64: same novel-view quality, 30% slower)
     label_size: int = 256  # resolution of the body-prior label renders used to place crops
     # --- stage 1: body-render initialisation -----------------------------------------------------
     init_steps: int = 600

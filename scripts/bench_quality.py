@@ -46,8 +46,9 @@ PAPER = {
     "full model": (22.61, 0.8908, 0.1115),
 }
 LIKELY_REASON = {
-    "without semantic loss": "the weights-free fallback encoder carries far less than CLIP, and stage 2 starts from "
-    "per-part input colours, so the semantic loss has little left to add",
+    "without semantic loss": "the weights-free fallback encoder is not CLIP: matching its colour and texture "
+    "statistics paints blotches of colour on the unseen back (rear views lose about 3.5 dB on the demo subject), "
+    "and stage 2 already starts from per-part input colours; a colour-only or low-passed fallback did not help",
     "without hybrid sampling": "with the weights-free encoder, whole-body crops match colour statistics about as well "
     "as part crops",
     "without silhouette loss": "the synthetic clothing is tight, so the body prior rarely disagrees with the subject",
