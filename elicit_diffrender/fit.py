@@ -463,7 +463,9 @@ class Fitter:
         log.info("resumed from %s at stage %d step %d", path, self.stage, self.step)
         return True
 
-    def snapshot(self) -> dict:
+    def snapshot(self, coverage: float | None = None) -> dict:
+        """A copy of the avatar's tensors: the guard's last good state, whose input coverage it keeps."""
+        self.good_coverage = self.input_coverage() if coverage is None else coverage
         return {k: v.detach().clone() for k, v in self.avatar.state_dict().items()}
 
     @torch.no_grad()
@@ -476,11 +478,13 @@ class Fitter:
         return float(alpha[mask].mean()) if mask.any() else 1.0
 
     def guard(self, good: dict) -> dict:
-        """Detect an emptied (or NaN) avatar: restore the last good state and halve the learning rate."""
+        """Detect an emptied (or NaN) avatar, whose input coverage fell below 0.2 and below half the last
+        good state's (an avatar that starts empty, as without the body prior, may grow): restore the
+        last good state and halve the learning rate."""
         coverage = self.input_coverage()
         finite = all(torch.isfinite(v).all() for v in self.avatar.state_dict().values() if v.is_floating_point())
-        if finite and coverage >= 0.2:
-            return self.snapshot()
+        if finite and coverage >= min(0.2, 0.5 * self.good_coverage):
+            return self.snapshot(coverage)
         self.avatar.load_state_dict(good)
         self.lr_scale *= 0.5
         event = {

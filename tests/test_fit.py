@@ -127,6 +127,21 @@ def test_empty_render_guard_restores_and_lowers_the_lr(tmp_path, tiny_subject):
     assert len(fitter.stats.recoveries) == 1
 
 
+def test_guard_lets_an_empty_start_grow_but_catches_it_emptying(tmp_path, tiny_subject):
+    cfg = make_config("cpu-fast", None, TINY + ["ablation=no_init"])
+    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
+    fitter.prepare()
+    good = fitter.snapshot()
+    start = fitter.input_coverage()
+    assert 0.0 < start < 0.2  # the grid starts (almost) empty without the body prior
+    fitter.guard(good)
+    assert not fitter.stats.recoveries  # low coverage alone is no collapse
+    with torch.no_grad():
+        fitter.avatar.field.density.fill_(-40.0)
+    fitter.guard(good)
+    assert len(fitter.stats.recoveries) == 1 and fitter.input_coverage() == pytest.approx(start)
+
+
 def test_stage2_density_lr_scales_only_the_density(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["stage2_density_lr=0.1"])
     fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
