@@ -1,6 +1,6 @@
 """The animatable avatar: a canonical radiance grid warped to any pose by inverse LBS.
 
-Rendering a (pose, camera): the body model gives the reduced skeleton's world frames for the pose;
+Rendering a (pose, camera): the body model gives the reduced skeleton's bone transforms for the pose;
 the canonical occupancy grid, forward-warped with the motion weights, bounds and fills an
 observation-space occupancy grid; rays are sampled only inside it, warped to canonical space by
 the Warp skinning kernel, and composited by the Warp ray marcher.
@@ -20,11 +20,14 @@ from .body.template import vertex_normals
 from .cameras import Camera
 from .errors import ElicitError
 from .field import CanonicalField, MotionWeights, grid_points, grid_shape
+from .geometry import axis_angle_to_matrix, rigid_inverse
 from .io import atomic_write
-from .skinning import axis_angle_to_matrix, inverse_lbs, rigid_inverse
+from .skinning import inverse_lbs
 from .volume import composite, sample_rays
 
 FORMAT = "elicit-avatar/1"
+# Tensor names of earlier files of this format: renamed, or (None) no longer stored.
+LEGACY_TENSORS = {"canonical_frames": "canonical_bones", "clothing_room": None}
 BOUNDS_CELL = 0.04  # metres: lattice that bounds the posed body when occupancy skipping is off
 
 
@@ -51,7 +54,7 @@ class Avatar(nn.Module):
         body_spec: dict,
         reduced_joints: list[str],
         parents: list[int],
-        canonical_frames: torch.Tensor,
+        canonical_bones: torch.Tensor,
         box: torch.Tensor,
         voxel_size: float,
         activation: str,
@@ -64,11 +67,10 @@ class Avatar(nn.Module):
         self.reduced_joints = list(reduced_joints)
         self.parents = list(parents)
         self.config = dict(config or {})
-        self.register_buffer("canonical_frames", canonical_frames.to(torch.float32).clone())
+        self.register_buffer("canonical_bones", canonical_bones.to(torch.float32).clone())
         self.field = CanonicalField(box, voxel_size, activation, occupancy_cell)
         self.motion_weights = MotionWeights(box, len(reduced_joints), weight_res)
         self.pose_delta = nn.Parameter(torch.zeros(len(reduced_joints), 3))
-        self.register_buffer("clothing_room", self.field.occupancy.clone())
         self._body: BodyModel | None = None
 
     # ---- construction ------------------------------------------------------------------------------
@@ -113,7 +115,6 @@ class Avatar(nn.Module):
         avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), margin=box_margin)
         if body_prior:
             avatar.field.init_from_body(verts, normals, allowed_margin=box_margin)
-            avatar.clothing_room.copy_(avatar.field.occupancy)
         avatar._body = body
         return avatar
 
@@ -127,30 +128,30 @@ class Avatar(nn.Module):
             self._body = load_body(self.body_spec)
         return self._body
 
-    # ---- poses ----------------------------------------------------------------------------------------
-    def pose_frames(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> torch.Tensor:
-        """(B, 4, 4) world frames of the reduced skeleton for one pose of the body model."""
+    # ---- poses: a pose is the (B, 4, 4) world transforms of the reduced skeleton's bones ------------------
+    def bone_transforms(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> torch.Tensor:
+        """(B, 4, 4) world transforms of the reduced skeleton for one pose of the body model."""
         posed = self.body.pose(pose, global_orient, transl)
         return torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32, device=self.device)
 
-    def refined(self, frames: torch.Tensor) -> torch.Tensor:
+    def refined(self, bones: torch.Tensor) -> torch.Tensor:
         """Apply the learned pose correction (a rotation per reduced joint, down the kinematic chain)."""
         local = []
         for b, p in enumerate(self.parents):
-            local.append(frames[b] if p < 0 else rigid_inverse(frames[p]) @ frames[b])
-        delta = torch.eye(4, device=frames.device).repeat(len(self.parents), 1, 1)
+            local.append(bones[b] if p < 0 else rigid_inverse(bones[p]) @ bones[b])
+        delta = torch.eye(4, device=bones.device).repeat(len(self.parents), 1, 1)
         delta[:, :3, :3] = axis_angle_to_matrix(self.pose_delta)
         out: list[torch.Tensor] = []
         for b, p in enumerate(self.parents):
             out.append((local[b] if p < 0 else out[p] @ local[b]) @ delta[b])
         return torch.stack(out)
 
-    def obs_to_canonical(self, frames: torch.Tensor) -> torch.Tensor:
-        return self.canonical_frames @ rigid_inverse(frames)
+    def obs_to_canonical(self, bones: torch.Tensor) -> torch.Tensor:
+        return self.canonical_bones @ rigid_inverse(bones)
 
     # ---- rendering ----------------------------------------------------------------------------------
     @torch.no_grad()
-    def observation_space(self, frames: torch.Tensor, margin: float = 0.03) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def observation_space(self, bones: torch.Tensor, margin: float = 0.03) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells."""
         f = self.field
         dev = self.device
@@ -169,7 +170,7 @@ class Avatar(nn.Module):
         pts = (occupied[:, None] + offsets[None]).reshape(-1, 3)
         w = sample_grid(self.motion_weights(), self.motion_weights.box, pts)  # (N, B)
         w = w / w.sum(1, keepdim=True).clamp(min=1e-6)
-        can_to_obs = frames @ rigid_inverse(self.canonical_frames)
+        can_to_obs = bones @ rigid_inverse(self.canonical_bones)
         posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
         pad = margin + max(cell, f.voxel_size)
         box = torch.stack([posed.min(0).values - pad, posed.max(0).values + pad])
@@ -188,7 +189,7 @@ class Avatar(nn.Module):
         self,
         origins: torch.Tensor,
         dirs: torch.Tensor,
-        frames: torch.Tensor,
+        bones: torch.Tensor,
         n_samples: int,
         background: torch.Tensor | None = None,
         jitter: bool = False,
@@ -197,11 +198,11 @@ class Avatar(nn.Module):
         t_thresh: float = 1e-3,
         space: tuple[torch.Tensor, torch.Tensor | None] | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Render rays in the pose given by ``frames`` (B, 4, 4); colour is composited over ``background``."""
-        box, occ = space if space is not None else self.observation_space(frames.detach())
+        """Render rays in the pose ``bones`` (B, 4, 4); colour is composited over ``background``."""
+        box, occ = space if space is not None else self.observation_space(bones.detach())
         samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
         weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
-        x_c, fg = inverse_lbs(samples.positions, self.obs_to_canonical(frames), weights, self.motion_weights.box)
+        x_c, fg = inverse_lbs(samples.positions, self.obs_to_canonical(bones), weights, self.motion_weights.box)
         f = self.field
         out = composite(
             samples,
@@ -217,27 +218,26 @@ class Avatar(nn.Module):
         )
         if "rgb" in out and background is not None:
             out["rgb"] = out["rgb"] + (1.0 - out["alpha"])[:, None] * background
-        out["n_samples"] = torch.tensor(samples.n_samples)
         return out
 
     @torch.no_grad()
     def render_image(
         self,
         camera: Camera,
-        frames: torch.Tensor,
+        bones: torch.Tensor,
         n_samples: int = 64,
         background=(0.0, 0.0, 0.0),
         chunk: int = 32768,
         t_thresh: float = 1e-3,
     ) -> dict[str, np.ndarray]:
         """A full image: (H, W, 3) colour and (H, W) alpha."""
-        space = self.observation_space(frames)
+        space = self.observation_space(bones)
         origins, dirs = camera.rays(device=self.device)
         bg = torch.tensor(background, dtype=torch.float32, device=self.device)
         rgb, alpha = [], []
         for s in range(0, origins.shape[0], chunk):
             out = self.render_rays(
-                origins[s : s + chunk], dirs[s : s + chunk], frames, n_samples, bg, space=space, t_thresh=t_thresh
+                origins[s : s + chunk], dirs[s : s + chunk], bones, n_samples, bg, space=space, t_thresh=t_thresh
             )
             rgb.append(out["rgb"])
             alpha.append(out["alpha"])
@@ -251,7 +251,7 @@ class Avatar(nn.Module):
         self, camera: Camera, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray, n_samples: int = 64
     ) -> dict[str, np.ndarray]:
         """A full image of the avatar in a body-model pose (the interface shared with the baselines)."""
-        return self.render_image(camera, self.pose_frames(pose, orient, transl), n_samples)
+        return self.render_image(camera, self.bone_transforms(pose, orient, transl), n_samples)
 
     # ---- files ------------------------------------------------------------------------------------------
     def state(self) -> dict:
@@ -278,12 +278,13 @@ class Avatar(nn.Module):
             raise AvatarError(
                 f"not an {FORMAT} avatar (format: {data.get('format') if isinstance(data, dict) else None})"
             )
-        t = data["tensors"]
+        renamed = {k: LEGACY_TENSORS.get(k, k) for k in data["tensors"]}
+        t = {new: data["tensors"][old] for old, new in renamed.items() if new is not None}
         avatar = cls(
             data["body"],
             data["reduced_joints"],
             data["parents"],
-            t["canonical_frames"],
+            t["canonical_bones"],
             t["field.box"],
             data["voxel_size"],
             data["activation"],

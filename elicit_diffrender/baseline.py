@@ -103,3 +103,28 @@ class TexturedBody:
         if data.get("format") != FORMAT:
             raise ElicitError(f"not an {FORMAT} file")
         return cls(data["body"], data["vertex_colors"].numpy())
+
+
+def fit_baseline(subject: Subject, cfg, run_dir: Path) -> dict:
+    """Fit the baseline to ``subject``, save it as ``run_dir/avatar.pt``; returns the run report (also run.json)."""
+    import logging
+    import resource
+    import time
+
+    from .config import config_dict
+    from .io import write_json
+
+    t0 = time.perf_counter()
+    path = TexturedBody.fit(subject).save(run_dir / "avatar.pt")
+    logging.getLogger("elicit.fit").info("baseline explicit_texture: per-vertex colours from the input view")
+    report = {
+        "subject": str(subject.root),
+        "avatar": str(path),
+        "config": config_dict(cfg),
+        "encoder": None,
+        "perceptual": {"name": "none (closed-form fit)", "reason": ""},
+        "seconds": {"total": time.perf_counter() - t0},
+        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+    write_json(run_dir / "run.json", report)
+    return report

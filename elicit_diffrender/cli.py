@@ -125,10 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="fit an avatar to a subject (two-stage ELICIT optimisation)")
     f.add_argument("subject", type=Path, help="an elicit-subject/1 folder")
-    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoints, previews, avatar.pt, run.json)")
+    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, previews, avatar.pt, run.json)")
     f.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
     f.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
-    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key")
+    f.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key (or ablation=NAME)"
+    )
     f.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
     f.set_defaults(func=_fit)
 

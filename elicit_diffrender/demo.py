@@ -24,6 +24,7 @@ NOVEL_MOTION = "squat"  # shown only after fitting
 
 def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[str] | None = None) -> dict:
     from .fit import fit
+    from .fit.checkpoint import CHECKPOINT
     from .subject import SubjectError, load_subject
     from .synth import synthesize
 
@@ -42,7 +43,7 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     run_dir = out / "run"
     if not (run_dir / "avatar.pt").is_file():
         cfg = make_config("cpu-fast", None, overrides)
-        fit(subject, cfg, run_dir, resume=(run_dir / "checkpoint.pt").is_file())
+        fit(subject, cfg, run_dir, resume=(run_dir / CHECKPOINT).is_file())
     times["fit"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 import warp as wp
@@ -76,16 +76,12 @@ def warp_scalar(dtype: torch.dtype):
     raise TypeError(f"only float32 and float64 are supported, got {dtype}")
 
 
-def warp_vec3(values: torch.Tensor, vec3):
-    """A Warp vector constant from three tensor values (e.g. a box corner)."""
-    return vec3(*[float(v) for v in values.tolist()])
-
-
-def warp_grid_frame(box: torch.Tensor, shape: tuple[int, ...], vec3) -> list:
-    """Kernel constants locating a node-aligned grid of ``shape`` over ``box``: [bmin, scale, res]."""
+def grid_frame(grid, box: torch.Tensor, shape: tuple[int, ...]):
+    """The ``GridFrame`` struct (of ``grid = grid_funcs(dtype)``) locating a node-aligned grid of
+    ``shape`` over ``box`` (2, 3)."""
     lo, hi = box[0].double(), box[1].double()
     scale = (torch.tensor(shape, dtype=torch.float64) - 1) / (hi - lo)
-    return [warp_vec3(lo, vec3), warp_vec3(scale, vec3), wp.vec3i(*shape)]
+    return grid.make_frame(lo.tolist(), scale.tolist(), tuple(shape))
 
 
 def cpu_threads() -> int:
@@ -97,10 +93,33 @@ def cpu_threads() -> int:
 
 
 def launch_parts(n_items: int, device: torch.device) -> int:
-    """How many pieces to split a launch of ``n_items`` threads into: 1 on CUDA, one per CPU thread."""
+    """How many pieces :func:`launch` splits ``n_items`` threads into: 1 on CUDA, one per CPU thread."""
     if device.type == "cuda":
         return 1
     return min(cpu_threads(), max(1, n_items // 256))
+
+
+def launch(
+    kernel, n_items: int, device: torch.device, args: Sequence | Callable[[int], Sequence], parts: int | None = None
+) -> None:
+    """Run ``kernel`` over ``n_items`` threads; its first argument is the first item of the launch.
+
+    On CUDA: one launch on torch's current stream, so Warp and torch work stay in order without a
+    sync. On CPU, where one launch runs on one thread: ``parts`` contiguous pieces (default
+    :func:`launch_parts`) in parallel threads. ``args`` are the other arguments, or ``args(part)``
+    gives each piece its own (per-thread gradient buffers).
+    """
+    if n_items == 0:
+        return
+    load_kernel(kernel, device)
+    per_part = args if callable(args) else (lambda part: args)
+    wdev = warp_device(device)
+    if device.type == "cuda":
+        stream = wp.stream_from_torch(torch.cuda.current_stream(device))
+        wp.launch(kernel, dim=n_items, inputs=[0, *per_part(0)], device=wdev, stream=stream)
+        return
+    n_parts = launch_parts(n_items, device) if parts is None else parts
+    split_launch(n_items, n_parts, lambda b, e, p: wp.launch(kernel, dim=e - b, inputs=[b, *per_part(p)], device=wdev))
 
 
 def split_launch(n_items: int, parts: int, run: Callable[[int, int, int], None]) -> None:

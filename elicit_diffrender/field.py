@@ -89,28 +89,6 @@ class CanonicalField(nn.Module):
         logits = np.log(rgb / (1 - rgb)).reshape(*self.shape, 3)
         self.color.copy_(torch.as_tensor(logits, dtype=torch.float32))
 
-    @torch.no_grad()
-    def update_occupancy(self, threshold: float = 0.01, keep: torch.Tensor | None = None) -> float:
-        """Mark coarse cells whose max density (per cell) exceeds ``threshold``, dilated by one cell.
-
-        ``keep`` (same shape as the occupancy grid) stays occupied regardless (the clothing room).
-        Returns the occupied fraction.
-        """
-        if self.occupancy_cell <= 0:
-            return 1.0
-        sigma = self.activated_density()[None, None]
-        occ = (
-            F.interpolate(
-                F.max_pool3d(sigma, 3, 1, 1), size=tuple(self.occupancy.shape), mode="trilinear", align_corners=True
-            )[0, 0]
-            > threshold
-        )
-        occ = F.max_pool3d(occ[None, None].float(), 3, 1, 1)[0, 0] > 0
-        if keep is not None:
-            occ |= keep.bool()
-        self.occupancy.copy_(occ.to(torch.uint8))
-        return float(occ.float().mean())
-
     def random_block(self, block: int = 40, generator: torch.Generator | None = None) -> tuple[slice, ...]:
         """A random ``block``^3 sub-grid, for cheap unbiased estimates of whole-grid regularisers."""
         start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]

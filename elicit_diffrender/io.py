@@ -58,3 +58,77 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
+
+
+# ---- tensors with JSON: safetensors files that cannot carry code -------------------------------------------
+TENSOR_REF = "__tensor__"
+META_KEY = "elicit"
+
+
+def split_tensors(tree: Any, prefix: str = "") -> tuple[Any, dict]:
+    """Replace every torch tensor in a tree of dicts (string keys) and lists by ``{TENSOR_REF: name}``.
+
+    Returns the JSON-able rest of the tree and the tensors by name (names are the paths, joined by '/').
+    """
+    import torch
+
+    if isinstance(tree, torch.Tensor):
+        return {TENSOR_REF: prefix}, {prefix: tree}
+    tensors: dict = {}
+    if isinstance(tree, dict):
+        out = {}
+        for key, value in tree.items():
+            if not isinstance(key, str):
+                raise TypeError(f"{prefix}: keys must be strings, got {key!r}")
+            out[key], found = split_tensors(value, f"{prefix}/{key}" if prefix else key)
+            tensors.update(found)
+        return out, tensors
+    if isinstance(tree, (list, tuple)):
+        out_list = []
+        for i, value in enumerate(tree):
+            item, found = split_tensors(value, f"{prefix}/{i}")
+            out_list.append(item)
+            tensors.update(found)
+        return out_list, tensors
+    return tree, tensors
+
+
+def join_tensors(tree: Any, tensors: dict) -> Any:
+    """Inverse of :func:`split_tensors`; a reference to a missing tensor raises ``KeyError``."""
+    if isinstance(tree, dict):
+        if set(tree) == {TENSOR_REF}:
+            return tensors[tree[TENSOR_REF]]
+        return {k: join_tensors(v, tensors) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [join_tensors(v, tensors) for v in tree]
+    return tree
+
+
+def write_tensors(path: str | Path, tree: Any) -> Path:
+    """Write a tree of tensors, numbers, strings, lists and dicts as one safetensors file (the rest as
+    JSON in its header), atomically."""
+    from safetensors.torch import save_file
+
+    rest, tensors = split_tensors(tree)
+    tensors = {k: v.detach().cpu().contiguous().clone() for k, v in tensors.items()}
+    header = {META_KEY: json.dumps(rest, default=_json_default)}
+    return atomic_write(path, lambda p: save_file(tensors, str(p), metadata=header))
+
+
+def read_tensors(path: str | Path) -> Any:
+    """Read a file written by :func:`write_tensors` (never runs code). Raises ``ValueError`` for a file
+    that is not one."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = (f.metadata() or {}).get(META_KEY)
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError) as exc:
+        raise ValueError(f"not a safetensors file ({exc})") from None
+    if header is None:
+        raise ValueError("a safetensors file without elicit's header")
+    try:
+        return join_tensors(json.loads(header), tensors)
+    except (json.JSONDecodeError, KeyError) as exc:
+        raise ValueError(f"damaged header ({type(exc).__name__}: {exc})") from None

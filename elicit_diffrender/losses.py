@@ -111,6 +111,3 @@ def opacity_entropy(alpha: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
     a = alpha.clamp(eps, 1 - eps)
     return -(a * a.log() + (1 - a) * (1 - a).log()).mean()
 
-
-def tv_image(x: torch.Tensor) -> torch.Tensor:
-    return (x[..., 1:, :] - x[..., :-1, :]).abs().mean() + (x[..., :, 1:] - x[..., :, :-1]).abs().mean()

@@ -17,8 +17,8 @@ import torch
 
 from .body import BodyModel
 from .errors import ElicitError
+from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from .io import atomic_write
-from .skinning import axis_angle_to_matrix, matrix_to_axis_angle
 
 BUILTIN_MOTIONS = ("walk_in_place", "turn_around", "wave", "squat", "rest", "anny_walk")
 
@@ -187,7 +187,8 @@ def builtin_motion(name: str, body: BodyModel, n_frames: int | None = None) -> M
             raise MotionError(f"motion 'anny_walk' is Anny's walk cycle; it needs an Anny body, not {body.name!r}")
         from .body.anny_walk import anny_walk_cycle
 
-        return anny_walk_cycle(body, n_frames or 40)[0]
+        clip, _ = anny_walk_cycle(body, n_frames or 40)
+        return Motion(clip.pose, clip.global_orient, clip.transl, None, clip.fps, "anny_walk")
     frames: dict[str, tuple[int, Callable[[float], dict]]] = {
         "walk_in_place": (30, _walk_frame),
         "turn_around": (48, _walk_frame),

@@ -18,11 +18,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from .body.fitting import FIT_STEPS, SilhouetteFactory, fit_anny_to_image
 from .cameras import Camera
 from .errors import ElicitError
 from .io import write_image, write_json
 from .mediapipe_bridge import MediaPipeUnavailable, detect_pose
 from .subject import read_png, write_subject
+
+RENDER_SIZE = 160  # longer image side of the body fit's differentiable silhouette, pixels
 
 
 class PrepareError(ElicitError):
@@ -80,6 +83,14 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
     return labels == (np.argmax(np.bincount(labels.ravel())[1:]) + 1)
 
 
+def mitsuba_silhouette(camera: Camera, size: int) -> SilhouetteFactory:
+    """The body fit's differentiable silhouette: Mitsuba's, through ``camera`` with its longer side at ``size``."""
+    from .mesh_render import DifferentiableSilhouette
+
+    small = camera.scaled(min(1.0, size / max(camera.width, camera.height)))
+    return lambda faces, n_vertices: DifferentiableSilhouette(faces, n_vertices, small)
+
+
 def prepare(
     photo: str | Path,
     out: str | Path,
@@ -91,7 +102,6 @@ def prepare(
 ) -> dict:
     """Build a subject from one photo; returns the fit report (also ``fit_report.json``). ``steps``
     overrides the body fit's ``FIT_STEPS``."""
-    from .body.fitting import FIT_STEPS, fit_anny_to_image
     from .importers import motion_with_input_frame
 
     t0 = time.perf_counter()
@@ -146,7 +156,9 @@ def prepare(
         raise PrepareError(f"{photo}: no person found by MediaPipe")
     sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
     sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
-    fit = fit_anny_to_image(K, mask, landmarks, joints3d, steps=FIT_STEPS if steps is None else steps)
+    fit = fit_anny_to_image(
+        K, mask, landmarks, joints3d, FIT_STEPS if steps is None else steps, mitsuba_silhouette(camera, RENDER_SIZE)
+    )
     body = fit["body"]
     spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
     motion_obj = motion_with_input_frame(

@@ -9,6 +9,7 @@ image. (The released code restricts rear references to the head and the legs.)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,7 +83,6 @@ def crop_window(mask: np.ndarray, part: str) -> tuple[float, float, float] | Non
 
 @dataclass
 class NovelView:
-    frame: int  # index into the training frames
     camera: int  # ring camera index
     part: str
     direction: str
@@ -105,12 +105,11 @@ def nearest_in_sector(yaws: np.ndarray, target_yaw: float, wanted: tuple[str, ..
 def plan_novel_view(
     rng: np.random.Generator,
     yaws: np.ndarray,
-    labels: list[np.ndarray],
-    frame: int,
+    labels: Sequence[np.ndarray],
     min_pixels: int,
     hybrid: bool = True,
 ) -> NovelView | None:
-    """Draw a part, a direction and a camera of ``frame``; ``yaws``/``labels`` are per ring camera.
+    """Draw a part, a direction and a camera of one pose; ``yaws``/``labels`` are that pose's per ring camera.
 
     A part with fewer than ``min_pixels`` pixels is redrawn; after ten tries the whole body is used.
     Without ``hybrid`` (the ablation) the part is always the whole body, the camera uniform and the
@@ -120,7 +119,7 @@ def plan_novel_view(
     if not hybrid:
         cam = int(rng.integers(n_cams))
         window = crop_window(part_pixels(labels[cam], "full"), "full")
-        return None if window is None else NovelView(frame, cam, "full", sector(yaws[cam]), window, "input", -1)
+        return None if window is None else NovelView(cam, "full", sector(yaws[cam]), window, "input", -1)
     for attempt in range(MAX_PART_TRIES + 1):
         part = sample_part(rng) if attempt < MAX_PART_TRIES else "full"
         direction = sample_direction(part, rng)
@@ -141,5 +140,5 @@ def plan_novel_view(
             ref_cam = nearest_in_sector(yaws, yaws[cam], ("front",))
         if ref_cam >= 0:
             reference = "render"
-        return NovelView(frame, cam, part, direction, window, reference, ref_cam)
+        return NovelView(cam, part, direction, window, reference, ref_cam)
     return None

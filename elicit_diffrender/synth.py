@@ -246,7 +246,8 @@ class SyntheticPerson:
         """Posed clothed vertices in render-vertex order (clothing rides the body's skinning)."""
         import torch
 
-        from .skinning import forward_lbs, rigid_inverse
+        from .geometry import rigid_inverse
+        from .skinning import forward_lbs
 
         rest = self.body.pose(self.body.zero_pose())
         posed = self.body.pose(pose, orient, transl)

@@ -12,19 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import warp as wp
 
-from .device import (
-    launch_parts,
-    load_kernel,
-    split_launch,
-    to_warp,
-    warp_device,
-    warp_grid_frame,
-    warp_scalar,
-    warp_vec3,
+from .device import grid_frame, launch, launch_parts, to_warp, warp_scalar
+from .kernels.raymarch import (
+    ACT_RELU,
+    ACT_SOFTPLUS,
+    composite_backward,
+    composite_forward,
+    composite_structs,
+    sampling_kernels,
 )
-from .kernels.raymarch import ACT_RELU, ACT_SOFTPLUS, raymarch_kernels
 
 ACTIVATIONS = {"relu": ACT_RELU, "softplus": ACT_SOFTPLUS}
 OUTPUTS = ("rgb", "alpha", "depth")
@@ -69,26 +66,23 @@ def sample_rays(
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1, got {n_samples}")
     device, dtype = origins.device, origins.dtype
-    k = raymarch_kernels(warp_scalar(dtype))
-    wdev = warp_device(device)
+    k = sampling_kernels(warp_scalar(dtype), bool(jitter), occupancy is not None)
     n_rays = origins.shape[0]
-    o = to_warp(origins.contiguous(), dtype=k.vec3)
-    d = to_warp(dirs.contiguous(), dtype=k.vec3)
-    bmin, bmax = warp_vec3(box[0], k.vec3), warp_vec3(box[1], k.vec3)
     if occupancy is None:
         occ_t = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
     else:
         occ_t = occupancy.to(device=device, dtype=torch.uint8).contiguous()
-    occ = to_warp(occ_t)
-    use_occ = int(occupancy is not None)
+    rays = [
+        to_warp(origins.contiguous(), dtype=k.vec3),
+        to_warp(dirs.contiguous(), dtype=k.vec3),
+        k.vec3(*box[0].tolist()),
+        k.vec3(*box[1].tolist()),
+        n_samples,
+        seed,
+        to_warp(occ_t),
+    ]
     counts = torch.zeros(n_rays, dtype=torch.int32, device=device)
-    if n_rays:
-        wp.launch(
-            k.count_samples,
-            dim=n_rays,
-            device=wdev,
-            inputs=[o, d, bmin, bmax, n_samples, int(jitter), seed, occ, use_occ, to_warp(counts)],
-        )
+    launch(k.count, n_rays, device, [*rays, to_warp(counts)])
     offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=device)
     offsets[1:] = torch.cumsum(counts, 0)
     total = int(offsets[-1].item())
@@ -97,89 +91,57 @@ def sample_rays(
     deltas = torch.empty(total, dtype=dtype, device=device)
     ray_ids = torch.empty(total, dtype=torch.int32, device=device)
     if total:
-        wp.launch(
-            k.fill_samples,
-            dim=n_rays,
-            device=wdev,
-            inputs=[
-                o,
-                d,
-                bmin,
-                bmax,
-                n_samples,
-                int(jitter),
-                seed,
-                occ,
-                use_occ,
-                to_warp(offsets),
-                to_warp(t_mid),
-                to_warp(deltas),
-                to_warp(ray_ids),
-                to_warp(positions, dtype=k.vec3),
-            ],
-        )
+        outs = [to_warp(t) for t in (offsets, t_mid, deltas, ray_ids)] + [to_warp(positions, dtype=k.vec3)]
+        launch(k.fill, n_rays, device, [*rays, *outs])
     return RaySamples(offsets, positions, t_mid, deltas, ray_ids)
+
+
+def _empty(*shape: int, like: torch.Tensor) -> torch.Tensor:
+    return torch.zeros(shape, dtype=like.dtype, device=like.device)
+
+
+def _ray_arguments(st, positions, fg, density, color, offsets, t_mid, deltas, box):
+    """The two structs both compositing passes read: the packed samples and the radiance grid."""
+    samples = st.RaySamples()
+    samples.offsets = to_warp(offsets)
+    samples.positions = to_warp(positions, dtype=st.vec3)
+    samples.t_mid = to_warp(t_mid)
+    samples.deltas = to_warp(deltas)
+    samples.fg = to_warp(fg)
+    grid = st.RadianceGrid()
+    grid.density = to_warp(density)
+    grid.color = to_warp(color, dtype=st.vec3)
+    grid.frame = grid_frame(st.grid, box, density.shape)
+    return samples, grid
+
+
+def _ray_outputs(st, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor):
+    out = st.RayOutputs()
+    out.rgb, out.alpha, out.depth = to_warp(rgb, dtype=st.vec3), to_warp(alpha), to_warp(depth)
+    return out
 
 
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, positions, fg, density, color, offsets, t_mid, deltas, box, act, t_thresh, need_rgb, need_depth):
         device, dtype = positions.device, positions.dtype
-        k = raymarch_kernels(warp_scalar(dtype))
+        st = composite_structs(warp_scalar(dtype))
         n_rays = offsets.shape[0] - 1
-        save = int(torch.is_grad_enabled() or any(ctx.needs_input_grad[:4]))
-        rgb = torch.zeros((n_rays if need_rgb else 0, 3), dtype=dtype, device=device)
-        acc = torch.zeros(n_rays, dtype=dtype, device=device)
-        depth = torch.zeros(n_rays if need_depth else 0, dtype=dtype, device=device)
-        trans = torch.zeros(positions.shape[0] if save else 0, dtype=dtype, device=device)
-        n_used = torch.zeros(n_rays if save else 0, dtype=torch.int32, device=device)
+        save = any(ctx.needs_input_grad[:4])
         has_fg = fg is not None
-        fg_t = fg.contiguous() if has_fg else torch.zeros(0, dtype=dtype, device=device)
-        color_t = color.contiguous() if need_rgb else torch.zeros((1, 1, 1, 3), dtype=dtype, device=device)
-        args = dict(
-            offsets=to_warp(offsets),
-            positions=to_warp(positions, dtype=k.vec3),
-            t_mid=to_warp(t_mid),
-            deltas=to_warp(deltas),
-            fg=to_warp(fg_t),
-            density=to_warp(density),
-            color=to_warp(color_t, dtype=k.vec3),
-            frame=warp_grid_frame(box, density.shape, k.vec3),
-        )
-        wdev = warp_device(device)
-
-        def run(b: int, e: int, part: int) -> None:
-            wp.launch(
-                k.composite_fwd,
-                dim=e - b,
-                device=wdev,
-                inputs=[
-                    b,
-                    args["offsets"],
-                    args["positions"],
-                    args["t_mid"],
-                    args["deltas"],
-                    args["fg"],
-                    int(has_fg),
-                    args["density"],
-                    args["color"],
-                    *args["frame"],
-                    act,
-                    t_thresh,
-                    int(need_rgb),
-                    int(need_depth),
-                    save,
-                    to_warp(rgb, dtype=k.vec3),
-                    to_warp(acc),
-                    to_warp(depth),
-                    to_warp(trans),
-                    to_warp(n_used),
-                ],
-            )
-
-        if n_rays:
-            load_kernel(k.composite_fwd, device)
-            split_launch(n_rays, launch_parts(n_rays, device), run)
+        rgb = _empty(n_rays if need_rgb else 0, 3, like=positions)
+        acc = _empty(n_rays, like=positions)
+        depth = _empty(n_rays if need_depth else 0, like=positions)
+        fg_t = fg.contiguous() if has_fg else _empty(0, like=positions)
+        color_t = color.contiguous() if need_rgb else _empty(1, 1, 1, 3, like=positions)
+        saved = st.Saved()
+        trans = _empty(positions.shape[0] if save else 0, like=positions)
+        n_used = torch.zeros(n_rays if save else 0, dtype=torch.int32, device=device)
+        saved.trans, saved.n_used = to_warp(trans), to_warp(n_used)
+        samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, box)
+        kernel = composite_forward(warp_scalar(dtype), act, has_fg, need_rgb, need_depth, save)
+        args = [samples, grid, t_thresh, _ray_outputs(st, rgb, acc, depth), saved]
+        launch(kernel, n_rays, device, args)
         ctx.save_for_backward(positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, n_used)
         ctx.box, ctx.act, ctx.has_fg, ctx.need_rgb, ctx.need_depth = box, act, has_fg, need_rgb, need_depth
         ctx.mark_non_differentiable(*([] if need_rgb else [rgb]), *([] if need_depth else [depth]))
@@ -189,67 +151,36 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, g_rgb, g_acc, g_depth):
         positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, n_used = ctx.saved_tensors
         device, dtype = positions.device, positions.dtype
-        k = raymarch_kernels(warp_scalar(dtype))
+        st = composite_structs(warp_scalar(dtype))
         n_rays = offsets.shape[0] - 1
-        need_pos = int(ctx.needs_input_grad[0])
-        need_grid = int(ctx.needs_input_grad[2] or ctx.needs_input_grad[3])
-        g_rgb = g_rgb.contiguous() if ctx.need_rgb else torch.zeros((0, 3), dtype=dtype, device=device)
-        g_depth = g_depth.contiguous() if ctx.need_depth else torch.zeros(0, dtype=dtype, device=device)
-        g_acc = g_acc.contiguous()
-        grad_pos = torch.zeros_like(positions) if need_pos else torch.zeros((0, 3), dtype=dtype, device=device)
+        need_pos = ctx.needs_input_grad[0]
+        need_grid = ctx.needs_input_grad[2] or ctx.needs_input_grad[3]
+        g_rgb = g_rgb.contiguous() if ctx.need_rgb else _empty(0, 3, like=positions)
+        g_depth = g_depth.contiguous() if ctx.need_depth else _empty(0, like=positions)
+        grad_pos = torch.zeros_like(positions) if need_pos else _empty(0, 3, like=positions)
         grad_fg = torch.zeros_like(fg_t)
         n_parts = launch_parts(n_rays, device)
         if need_grid:  # one gradient buffer per thread, summed afterwards
             grids = [(torch.zeros_like(density), torch.zeros_like(color_t)) for _ in range(n_parts)]
         else:
-            grids = [
-                (
-                    torch.zeros((1, 1, 1), dtype=dtype, device=device),
-                    torch.zeros((1, 1, 1, 3), dtype=dtype, device=device),
-                )
-            ] * n_parts
-        common = [
-            to_warp(offsets),
-            to_warp(positions, dtype=k.vec3),
-            to_warp(t_mid),
-            to_warp(deltas),
-            to_warp(fg_t),
-            int(ctx.has_fg),
-            to_warp(density),
-            to_warp(color_t, dtype=k.vec3),
-            *warp_grid_frame(ctx.box, density.shape, k.vec3),
-            ctx.act,
-            int(ctx.need_rgb),
-            int(ctx.need_depth),
-            to_warp(trans),
-            to_warp(n_used),
-            to_warp(g_rgb, dtype=k.vec3),
-            to_warp(g_acc),
-            to_warp(g_depth),
-            need_grid,
-            need_pos,
-        ]
-        wdev = warp_device(device)
+            grids = [(_empty(1, 1, 1, like=positions), _empty(1, 1, 1, 3, like=positions))] * n_parts
+        samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)
+        saved = st.Saved()
+        saved.trans, saved.n_used = to_warp(trans), to_warp(n_used)
+        grad_out = _ray_outputs(st, g_rgb, g_acc.contiguous(), g_depth)
 
-        def run(b: int, e: int, part: int) -> None:
-            gd, gc = grids[part]
-            wp.launch(
-                k.composite_bwd,
-                dim=e - b,
-                device=wdev,
-                inputs=[
-                    b,
-                    *common,
-                    to_warp(gd),
-                    to_warp(gc, dtype=k.vec3),
-                    to_warp(grad_pos, dtype=k.vec3),
-                    to_warp(grad_fg),
-                ],
-            )
+        def gradients(part: int):
+            out = st.Gradients()
+            out.density = to_warp(grids[part][0])
+            out.color = to_warp(grids[part][1], dtype=st.vec3)
+            out.positions = to_warp(grad_pos, dtype=st.vec3)
+            out.fg = to_warp(grad_fg)
+            return [samples, grid, saved, grad_out, out]
 
-        if n_rays:
-            load_kernel(k.composite_bwd, device)
-            split_launch(n_rays, n_parts, run)
+        kernel = composite_backward(
+            warp_scalar(dtype), ctx.act, ctx.has_fg, ctx.need_rgb, ctx.need_depth, need_grid, need_pos
+        )
+        launch(kernel, n_rays, device, gradients, n_parts)
         grad_density = grad_color = None
         if need_grid:
             grad_density = grids[0][0]
@@ -264,14 +195,7 @@ class _Composite(torch.autograd.Function):
             grad_fg if ctx.has_fg else None,
             grad_density,
             grad_color,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
+            *[None] * 8,
         )
 
 

@@ -2,7 +2,8 @@
 
 Grids are node-aligned over an axis-aligned box: node (i, j, k) of a grid with ``res`` nodes per
 axis sits at ``bmin + (i, j, k) / scale`` with ``scale = (res - 1) / (bmax - bmin)`` (nodes per unit
-length, precomputed on the host). Points outside the box read zero and receive no gradient.
+length, precomputed on the host). A :class:`GridFrame` struct carries the three. Points outside the
+box read zero and receive no gradient.
 """
 
 import functools
@@ -17,10 +18,27 @@ def grid_funcs(dtype) -> SimpleNamespace:
     vec3 = wp.types.vector(3, dtype)
     vec8 = wp.types.vector(8, dtype)
 
+    @wp.struct
+    class GridFrame:
+        """Where a node-aligned grid lies: its first node, nodes per unit length, nodes per axis."""
+
+        bmin: vec3
+        scale: vec3
+        res: wp.vec3i
+
+    def make_frame(bmin, scale, res) -> GridFrame:
+        """A :class:`GridFrame` from three Python triples (host side)."""
+        frame = GridFrame()
+        frame.bmin = vec3(*bmin)
+        frame.scale = vec3(*scale)
+        frame.res = wp.vec3i(*res)
+        return frame
+
     @wp.func
-    def locate(x: vec3, bmin: vec3, scale: vec3, res: wp.vec3i):
+    def locate(x: vec3, frame: GridFrame):
         """Cell base index, fractional position in the cell, and whether x lies in the box."""
-        f = wp.cw_mul(x - bmin, scale)
+        res = frame.res
+        f = wp.cw_mul(x - frame.bmin, frame.scale)
         hi = vec3(dtype(res[0] - 1), dtype(res[1] - 1), dtype(res[2] - 1))
         ok = f[0] >= dtype(0.0) and f[1] >= dtype(0.0) and f[2] >= dtype(0.0)
         ok = ok and f[0] <= hi[0] and f[1] <= hi[1] and f[2] <= hi[2]  # also False for NaN
@@ -157,13 +175,15 @@ def grid_funcs(dtype) -> SimpleNamespace:
             )
 
     @wp.func
-    def frac_to_world(g: vec3, scale: vec3):
+    def frac_to_world(g: vec3, frame: GridFrame):
         """Chain a gradient with respect to ``frac`` to one with respect to world position."""
-        return wp.cw_mul(g, scale)
+        return wp.cw_mul(g, frame.scale)
 
     return SimpleNamespace(
         vec3=vec3,
         vec8=vec8,
+        GridFrame=GridFrame,
+        make_frame=make_frame,
         locate=locate,
         corner_weights=corner_weights,
         lerp3=lerp3,

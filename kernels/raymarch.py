@@ -1,10 +1,34 @@
 """Warp kernels for volume ray marching over an explicit density + colour grid.
 
 Samples are *packed*: ray ``r`` owns samples ``offsets[r] .. offsets[r+1]`` (nerfacc's layout),
-so empty space skipped by the occupancy grid costs nothing downstream. The compositing adjoint is
-written by hand (``wp.Tape`` is wrong for loops with ``break``): it walks each ray backwards with
-the transmittance saved by the forward pass and stable "behind" accumulators, so no division by a
-vanishing transmittance ever happens.
+so empty space skipped by the occupancy grid costs nothing downstream. Every kernel takes the
+first item of its launch (``r0``) so that a CPU launch can be split across threads; its switches
+(jitter, occupancy, which outputs and gradients) are compile-time constants of each kernel
+instance, as the scalar type is.
+
+Compositing (per ray, samples ``i = 0 .. n-1`` front to back, stopped once ``T < t_thresh``)::
+
+    sigma_i = act(density(x_i)) ,  a_i = fg_i * (1 - exp(-sigma_i * delta_i)) ,  c_i = sigmoid(colour(x_i))
+    T_0 = 1 ,  T_{i+1} = T_i * (1 - a_i) ,  w_i = T_i * a_i
+    C = sum_i w_i c_i ,  A = sum_i w_i = 1 - T_n ,  D = sum_i w_i t_i
+
+The backward pass (hand-written: ``wp.Tape`` is wrong for loops with ``break``) needs the
+derivative of each output with respect to each ``a_i``. Split ``C`` at sample ``i``::
+
+    C = sum_{j<i} w_j c_j + T_i a_i c_i + T_i (1 - a_i) B_i ,
+    B_i = sum_{j>i} (T_j / T_{i+1}) a_j c_j      (the normalised colour behind sample i)
+
+so ``dC/da_i = T_i (c_i - B_i)``, and likewise ``dA/da_i = T_i (1 - BA_i)`` and
+``dD/da_i = T_i (t_i - BD_i)`` with ``BA_i``, ``BD_i`` the opacity and depth behind ``i``. Walking the
+ray back to front, all three follow one recurrence from ``B_{n-1} = 0``::
+
+    B_{i-1} = a_i c_i + (1 - a_i) B_i
+
+which only multiplies by ``1 - a_i``: no division by a vanishing transmittance, and ``T_i`` itself
+is saved by the forward pass. The chain rule then gives ``da_i/draw_i = fg_i exp(-sigma_i delta_i)
+delta_i act'(raw_i)``, ``da_i/dfg_i = 1 - exp(-sigma_i delta_i)``, ``dC/dc_i = w_i`` (times the
+sigmoid's ``c (1 - c)``), and the trilinear weights carry every raw gradient to the 8 grid nodes
+around ``x_i`` and to ``x_i`` itself.
 
 Density activations: 0 = relu (HumanNeRF), 1 = softplus. Colour activation: sigmoid.
 """
@@ -18,13 +42,14 @@ from .grid import grid_funcs
 
 ACT_RELU = 0
 ACT_SOFTPLUS = 1
+OPTIONS = {"optimization_level": 3}
 
 
 @functools.cache
-def raymarch_kernels(dtype) -> SimpleNamespace:
-    """Sampling and compositing kernels for scalar type ``dtype``."""
-    g = grid_funcs(dtype)
-    vec3 = g.vec3
+def sampling_kernels(dtype, jitter: bool, use_occupancy: bool) -> SimpleNamespace:
+    """Stratified sampling inside a box (counting pass, then filling pass) for scalar type ``dtype``."""
+    vec3 = grid_funcs(dtype).vec3
+    JITTER, USE_OCC = jitter, use_occupancy
 
     @wp.func
     def ray_box(o: vec3, d: vec3, bmin: vec3, bmax: vec3):
@@ -44,9 +69,9 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
         return tmin, tmax
 
     @wp.func
-    def sample_t(ray: int, k: int, n: int, near: dtype, far: dtype, jitter: int, seed: int):
+    def sample_t(ray: int, k: int, n: int, near: dtype, far: dtype, seed: int):
         u = dtype(0.5)
-        if jitter != 0:
+        if wp.static(JITTER):
             state = wp.rand_init(seed, ray * n + k)
             u = dtype(wp.randf(state))
         step = (far - near) / dtype(n)
@@ -54,59 +79,59 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
 
     @wp.func
     def occupied(x: vec3, bmin: vec3, bmax: vec3, occ: wp.array3d(dtype=wp.uint8)):
-        idx = wp.vec3i(0, 0, 0)
-        for a in range(3):
-            n = occ.shape[a]
-            f = (x[a] - bmin[a]) / (bmax[a] - bmin[a]) * dtype(n)
-            idx[a] = wp.clamp(int(wp.floor(f)), 0, n - 1)
-        return occ[idx[0], idx[1], idx[2]] != wp.uint8(0)
+        if wp.static(USE_OCC):
+            idx = wp.vec3i(0, 0, 0)
+            for a in range(3):
+                n = occ.shape[a]
+                f = (x[a] - bmin[a]) / (bmax[a] - bmin[a]) * dtype(n)
+                idx[a] = wp.clamp(int(wp.floor(f)), 0, n - 1)
+            return occ[idx[0], idx[1], idx[2]] != wp.uint8(0)
+        return True
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"optimization_level": 3})
+    @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def count_samples(
+        r0: int,
         origins: wp.array(dtype=vec3),
         dirs: wp.array(dtype=vec3),
         bmin: vec3,
         bmax: vec3,
         n_samples: int,
-        jitter: int,
         seed: int,
         occ: wp.array3d(dtype=wp.uint8),
-        use_occ: int,
         counts: wp.array(dtype=wp.int32),
     ):
-        r = wp.tid()
+        r = wp.tid() + r0
         o = origins[r]
         d = dirs[r]
         near, far = ray_box(o, d, bmin, bmax)
         c = int(0)
         if far > near:
-            if use_occ == 0:
-                c = n_samples
-            else:
+            if wp.static(USE_OCC):
                 for k in range(n_samples):
-                    t, step = sample_t(r, k, n_samples, near, far, jitter, seed)
+                    t, step = sample_t(r, k, n_samples, near, far, seed)
                     if occupied(o + t * d, bmin, bmax, occ):
                         c += 1
+            else:
+                c = n_samples
         counts[r] = wp.int32(c)
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"optimization_level": 3})
+    @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def fill_samples(
+        r0: int,
         origins: wp.array(dtype=vec3),
         dirs: wp.array(dtype=vec3),
         bmin: vec3,
         bmax: vec3,
         n_samples: int,
-        jitter: int,
         seed: int,
         occ: wp.array3d(dtype=wp.uint8),
-        use_occ: int,
         offsets: wp.array(dtype=wp.int32),
         t_mid: wp.array(dtype=dtype),
         deltas: wp.array(dtype=dtype),
         ray_ids: wp.array(dtype=wp.int32),
         positions: wp.array(dtype=vec3),
     ):
-        r = wp.tid()
+        r = wp.tid() + r0
         begin = int(offsets[r])
         end = int(offsets[r + 1])
         if end == begin:
@@ -117,33 +142,95 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
         s = begin
         for k in range(n_samples):
             if s < end:
-                t, step = sample_t(r, k, n_samples, near, far, jitter, seed)
+                t, step = sample_t(r, k, n_samples, near, far, seed)
                 x = o + t * d
-                keep = True
-                if use_occ != 0:
-                    keep = occupied(x, bmin, bmax, occ)
-                if keep:
+                if occupied(x, bmin, bmax, occ):
                     t_mid[s] = t
                     deltas[s] = step
                     ray_ids[s] = wp.int32(r)
                     positions[s] = x
                     s += 1
 
+    return SimpleNamespace(vec3=vec3, count=count_samples, fill=fill_samples)
+
+
+@functools.cache
+def composite_structs(dtype) -> SimpleNamespace:
+    """The argument bundles shared by the compositing kernels of scalar type ``dtype``."""
+    g = grid_funcs(dtype)
+    vec3 = g.vec3
+
+    @wp.struct
+    class RaySamples:
+        """Packed samples: where to read the grids, where they lie on their ray, and their fg weight."""
+
+        offsets: wp.array(dtype=wp.int32)
+        positions: wp.array(dtype=vec3)
+        t_mid: wp.array(dtype=dtype)
+        deltas: wp.array(dtype=dtype)
+        fg: wp.array(dtype=dtype)
+
+    @wp.struct
+    class RadianceGrid:
+        density: wp.array3d(dtype=dtype)
+        color: wp.array3d(dtype=vec3)
+        frame: g.GridFrame
+
+    @wp.struct
+    class RayOutputs:
+        """Per ray colour, opacity and depth (or their incoming gradients in the backward pass)."""
+
+        rgb: wp.array(dtype=vec3)
+        alpha: wp.array(dtype=dtype)
+        depth: wp.array(dtype=dtype)
+
+    @wp.struct
+    class Saved:
+        """What the forward pass keeps for the backward: transmittance per sample, samples used per ray."""
+
+        trans: wp.array(dtype=dtype)
+        n_used: wp.array(dtype=wp.int32)
+
+    @wp.struct
+    class Gradients:
+        density: wp.array3d(dtype=dtype)
+        color: wp.array3d(dtype=vec3)
+        positions: wp.array(dtype=vec3)
+        fg: wp.array(dtype=dtype)
+
+    return SimpleNamespace(
+        vec3=vec3,
+        grid=g,
+        RaySamples=RaySamples,
+        RadianceGrid=RadianceGrid,
+        RayOutputs=RayOutputs,
+        Saved=Saved,
+        Gradients=Gradients,
+    )
+
+
+@functools.cache
+def activation_funcs(dtype, act: int) -> SimpleNamespace:
+    """The density activation ``act`` and its derivative, and the colour sigmoid."""
+    ACT = act
+
     @wp.func
-    def activate(raw: dtype, act: int):
-        if act == 0:
+    def activate(raw: dtype):
+        if wp.static(ACT == ACT_RELU):
             return wp.max(raw, dtype(0.0))
         if raw > dtype(20.0):
             return raw
         return wp.log(dtype(1.0) + wp.exp(raw))
 
     @wp.func
-    def activate_grad(raw: dtype, act: int):
-        if act == 0:
+    def activate_grad(raw: dtype):
+        if wp.static(ACT == ACT_RELU):
             if raw > dtype(0.0):
                 return dtype(1.0)
             return dtype(0.0)
         return dtype(1.0) / (dtype(1.0) + wp.exp(-raw))
+
+    vec3 = grid_funcs(dtype).vec3
 
     @wp.func
     def sigmoid3(v: vec3):
@@ -153,34 +240,30 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
             dtype(1.0) / (dtype(1.0) + wp.exp(-v[2])),
         )
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"optimization_level": 3})
+    return SimpleNamespace(activate=activate, activate_grad=activate_grad, sigmoid3=sigmoid3)
+
+
+@functools.cache
+def composite_forward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, save: bool):
+    """Forward compositing: ``rgb``/``depth`` say which outputs to compute (opacity always), ``save``
+    whether to keep the transmittance for a backward pass, ``has_fg`` whether alphas are scaled by fg."""
+    st = composite_structs(dtype)
+    g, vec3 = st.grid, st.vec3
+    fn = activation_funcs(dtype, act)
+    HAS_FG, RGB, DEPTH, SAVE = has_fg, rgb, depth, save
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def composite_fwd(
-        ray0: int,
-        offsets: wp.array(dtype=wp.int32),
-        positions: wp.array(dtype=vec3),
-        t_mid: wp.array(dtype=dtype),
-        deltas: wp.array(dtype=dtype),
-        fg: wp.array(dtype=dtype),
-        has_fg: int,
-        density: wp.array3d(dtype=dtype),
-        color: wp.array3d(dtype=vec3),
-        bmin: vec3,
-        scale: vec3,
-        res: wp.vec3i,
-        act: int,
+        r0: int,
+        samples: st.RaySamples,
+        grid: st.RadianceGrid,
         t_thresh: dtype,
-        need_rgb: int,
-        need_depth: int,
-        save: int,
-        rgb: wp.array(dtype=vec3),
-        acc: wp.array(dtype=dtype),
-        depth: wp.array(dtype=dtype),
-        trans: wp.array(dtype=dtype),
-        n_used: wp.array(dtype=wp.int32),
+        out: st.RayOutputs,
+        saved: st.Saved,
     ):
-        r = wp.tid() + ray0
-        begin = int(offsets[r])
-        end = int(offsets[r + 1])
+        r = wp.tid() + r0
+        begin = int(samples.offsets[r])
+        end = int(samples.offsets[r + 1])
         T = dtype(1.0)
         C = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         D = dtype(0.0)
@@ -188,92 +271,83 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
         for s in range(begin, end):
             if T < t_thresh:
                 break
-            if save != 0:
-                trans[s] = T
+            if wp.static(SAVE):
+                saved.trans[s] = T
             used += 1
-            ok, base, frac = g.locate(positions[s], bmin, scale, res)
+            ok, base, frac = g.locate(samples.positions[s], grid.frame)
             if ok:
                 w8 = g.corner_weights(frac)
-                sigma = activate(g.lerp3(density, base, w8), act)
-                a = dtype(1.0) - wp.exp(-sigma * deltas[s])
-                if has_fg != 0:
-                    a = a * fg[s]
+                sigma = fn.activate(g.lerp3(grid.density, base, w8))
+                a = dtype(1.0) - wp.exp(-sigma * samples.deltas[s])
+                if wp.static(HAS_FG):
+                    a = a * samples.fg[s]
                 w = T * a
-                if need_rgb != 0:
-                    C += w * sigmoid3(g.lerp3v(color, base, w8))
-                if need_depth != 0:
-                    D += w * t_mid[s]
+                if wp.static(RGB):
+                    C += w * fn.sigmoid3(g.lerp3v(grid.color, base, w8))
+                if wp.static(DEPTH):
+                    D += w * samples.t_mid[s]
                 T = T * (dtype(1.0) - a)
-        acc[r] = dtype(1.0) - T
-        if need_rgb != 0:
-            rgb[r] = C
-        if need_depth != 0:
-            depth[r] = D
-        if save != 0:
-            n_used[r] = wp.int32(used)
+        out.alpha[r] = dtype(1.0) - T
+        if wp.static(RGB):
+            out.rgb[r] = C
+        if wp.static(DEPTH):
+            out.depth[r] = D
+        if wp.static(SAVE):
+            saved.n_used[r] = wp.int32(used)
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"optimization_level": 3})
+    return composite_fwd
+
+
+@functools.cache
+def composite_backward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, grids: bool, positions: bool):
+    """Backward compositing (see the module docstring): gradients for the grids (``grids``), the sample
+    positions (``positions``) and, with ``has_fg``, the fg weights, from those of the requested outputs."""
+    st = composite_structs(dtype)
+    g, vec3 = st.grid, st.vec3
+    fn = activation_funcs(dtype, act)
+    HAS_FG, RGB, DEPTH, GRIDS, POSITIONS = has_fg, rgb, depth, grids, positions
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def composite_bwd(
-        ray0: int,
-        offsets: wp.array(dtype=wp.int32),
-        positions: wp.array(dtype=vec3),
-        t_mid: wp.array(dtype=dtype),
-        deltas: wp.array(dtype=dtype),
-        fg: wp.array(dtype=dtype),
-        has_fg: int,
-        density: wp.array3d(dtype=dtype),
-        color: wp.array3d(dtype=vec3),
-        bmin: vec3,
-        scale: vec3,
-        res: wp.vec3i,
-        act: int,
-        need_rgb: int,
-        need_depth: int,
-        trans: wp.array(dtype=dtype),
-        n_used: wp.array(dtype=wp.int32),
-        grad_rgb: wp.array(dtype=vec3),
-        grad_acc: wp.array(dtype=dtype),
-        grad_depth: wp.array(dtype=dtype),
-        need_grid: int,
-        need_pos: int,
-        grad_density: wp.array3d(dtype=dtype),
-        grad_color: wp.array3d(dtype=vec3),
-        grad_pos: wp.array(dtype=vec3),
-        grad_fg: wp.array(dtype=dtype),
+        r0: int,
+        samples: st.RaySamples,
+        grid: st.RadianceGrid,
+        saved: st.Saved,
+        grad_out: st.RayOutputs,
+        grad_in: st.Gradients,
     ):
-        r = wp.tid() + ray0
-        begin = int(offsets[r])
-        used = int(n_used[r])
-        gA = grad_acc[r]
+        r = wp.tid() + r0
+        begin = int(samples.offsets[r])
+        used = int(saved.n_used[r])
+        gA = grad_out.alpha[r]
         gC = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
-        if need_rgb != 0:
-            gC = grad_rgb[r]
+        if wp.static(RGB):
+            gC = grad_out.rgb[r]
         gD = dtype(0.0)
-        if need_depth != 0:
-            gD = grad_depth[r]
+        if wp.static(DEPTH):
+            gD = grad_out.depth[r]
         # Normalised colour, opacity and depth of everything behind the current sample.
         B = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         BA = dtype(0.0)
         BD = dtype(0.0)
         for j in range(used):
             s = begin + used - 1 - j
-            ok, base, frac = g.locate(positions[s], bmin, scale, res)
+            ok, base, frac = g.locate(samples.positions[s], grid.frame)
             if ok:
-                T = trans[s]
+                T = saved.trans[s]
                 w8 = g.corner_weights(frac)
-                raw = g.lerp3(density, base, w8)
-                sigma = activate(raw, act)
-                e = wp.exp(-sigma * deltas[s])
+                raw = g.lerp3(grid.density, base, w8)
+                e = wp.exp(-fn.activate(raw) * samples.deltas[s])
                 a0 = dtype(1.0) - e
                 f = dtype(1.0)
-                if has_fg != 0:
-                    f = fg[s]
+                if wp.static(HAS_FG):
+                    f = samples.fg[s]
                 a = f * a0
                 c = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
-                ga = gA * T * (dtype(1.0) - BA)
+                ga = gA * T * (dtype(1.0) - BA)  # dL/da_i
                 gpos = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
-                if need_rgb != 0:
-                    c = sigmoid3(g.lerp3v(color, base, w8))
+                if wp.static(RGB):
+                    c = fn.sigmoid3(g.lerp3v(grid.color, base, w8))
                     ga += wp.dot(gC, T * (c - B))
                     gc = (T * a) * gC
                     graw_c = vec3(
@@ -281,28 +355,22 @@ def raymarch_kernels(dtype) -> SimpleNamespace:
                         gc[1] * c[1] * (dtype(1.0) - c[1]),
                         gc[2] * c[2] * (dtype(1.0) - c[2]),
                     )
-                    if need_grid != 0:
-                        g.scatter3v(grad_color, base, w8, graw_c)
-                    if need_pos != 0:
-                        gpos += g.lerp3v_dot_grad(color, base, frac, graw_c)
-                if need_depth != 0:
-                    ga += gD * T * (t_mid[s] - BD)
-                graw = ga * f * e * deltas[s] * activate_grad(raw, act)
-                if need_grid != 0:
-                    g.scatter3(grad_density, base, w8, graw)
-                if need_pos != 0:
-                    gpos += graw * g.lerp3_grad(density, base, frac)
-                    grad_pos[s] = g.frac_to_world(gpos, scale)
-                if has_fg != 0:
-                    grad_fg[s] = ga * a0
+                    if wp.static(GRIDS):
+                        g.scatter3v(grad_in.color, base, w8, graw_c)
+                    if wp.static(POSITIONS):
+                        gpos += g.lerp3v_dot_grad(grid.color, base, frac, graw_c)
+                if wp.static(DEPTH):
+                    ga += gD * T * (samples.t_mid[s] - BD)
+                graw = ga * f * e * samples.deltas[s] * fn.activate_grad(raw)
+                if wp.static(GRIDS):
+                    g.scatter3(grad_in.density, base, w8, graw)
+                if wp.static(POSITIONS):
+                    gpos += graw * g.lerp3_grad(grid.density, base, frac)
+                    grad_in.positions[s] = g.frac_to_world(gpos, grid.frame)
+                if wp.static(HAS_FG):
+                    grad_in.fg[s] = ga * a0
                 B = a * c + (dtype(1.0) - a) * B
                 BA = a + (dtype(1.0) - a) * BA
-                BD = a * t_mid[s] + (dtype(1.0) - a) * BD
+                BD = a * samples.t_mid[s] + (dtype(1.0) - a) * BD
 
-    return SimpleNamespace(
-        vec3=vec3,
-        count_samples=count_samples,
-        fill_samples=fill_samples,
-        composite_fwd=composite_fwd,
-        composite_bwd=composite_bwd,
-    )
+    return composite_bwd

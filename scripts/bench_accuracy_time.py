@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from elicit_diffrender.benchtools import PSNR_TIE_DB
+from elicit_diffrender.fit.checkpoint import CHECKPOINT
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = "cpu-fast"
@@ -49,6 +50,7 @@ SWEEP: dict[str, list[str]] = {  # the most telling points first
         "steps=300",
         "checkpoint_every=100",
         "preview_every=100",
+        "guard_every=100",
     ],
 }
 QUICK = ("cpu-fast", "24 samples", "1000 steps", "voxel 2.4 cm")
@@ -78,7 +80,7 @@ def fit_point(elicit: str, subject: Path, run_dir: Path, overrides: list[str]) -
     metrics = run_dir / "metrics.json"
     if not metrics.is_file():
         if not (run_dir / "avatar.pt").is_file():
-            resume = ["--resume"] if (run_dir / "checkpoint.pt").is_file() else []
+            resume = ["--resume"] if (run_dir / CHECKPOINT).is_file() else []
             run(
                 [elicit, "fit", str(subject), "--out", str(run_dir), "--preset", preset, *sets, *resume],
                 run_dir / "fit.log",

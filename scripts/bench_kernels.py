@@ -54,8 +54,9 @@ from elicit_diffrender.benchtools import (  # noqa: E402
     write_report,
 )
 from elicit_diffrender.device import default_device  # noqa: E402
+from elicit_diffrender.geometry import axis_angle_to_matrix  # noqa: E402
 from elicit_diffrender.reference import composite_reference, inverse_lbs_reference  # noqa: E402
-from elicit_diffrender.skinning import axis_angle_to_matrix, inverse_lbs  # noqa: E402
+from elicit_diffrender.skinning import inverse_lbs  # noqa: E402
 from elicit_diffrender.volume import composite, sample_rays  # noqa: E402
 
 BOX = torch.tensor([[-0.9, -1.0, -0.5], [0.9, 1.0, 0.5]])

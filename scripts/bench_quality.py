@@ -23,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from elicit_diffrender.benchtools import PSNR_TIE_DB
+from elicit_diffrender.fit.checkpoint import CHECKPOINT
 
 ROOT = Path(__file__).resolve().parents[1]
 SUBJECTS = [(1, "walk_in_place"), (2, "wave"), (3, "squat")]
@@ -75,7 +76,7 @@ def job(elicit: str, subject: Path, run_dir: Path, overrides: list[str], env: di
     metrics = run_dir / "metrics.json"
     if not metrics.is_file():
         sets = [x for kv in overrides for x in ("--set", kv)]
-        resume = ["--resume"] if (run_dir / "checkpoint.pt").is_file() else []
+        resume = ["--resume"] if (run_dir / CHECKPOINT).is_file() else []
         if not (run_dir / "avatar.pt").is_file():
             run([elicit, "fit", str(subject), "--out", str(run_dir), *sets, *resume], env, run_dir / "fit.log")
         run([elicit, "eval", str(run_dir), str(subject), "--out", str(metrics)], env, run_dir / "eval.log")

@@ -42,9 +42,11 @@ def main() -> int:
     import imageio.v3 as iio
 
     from elicit_diffrender.animate import contact_sheet, load_avatar
-    from elicit_diffrender.body.fitting import RENDER_SIZE, RENDER_STEPS
-    from elicit_diffrender.fit import place_ring
+    from elicit_diffrender.body.fitting import RENDER_STEPS
+    from elicit_diffrender.fit.checkpoint import CHECKPOINT
+    from elicit_diffrender.fit.views import place_ring
     from elicit_diffrender.io import write_text
+    from elicit_diffrender.prepare import RENDER_SIZE
     from elicit_diffrender.subject import load_subject
 
     elicit = str(Path(sys.executable).with_name("elicit"))
@@ -83,7 +85,7 @@ def main() -> int:
     for name in [] if args.skip_fit else args.fit:
         subject_dir, run = args.work / name, args.work / f"{name}_run"
         if not (run / "avatar.pt").is_file():
-            resume = ["--resume"] if (run / "checkpoint.pt").is_file() else []
+            resume = ["--resume"] if (run / CHECKPOINT).is_file() else []
             subprocess.run([elicit, "fit", str(subject_dir), "--out", str(run), *resume], check=True)
         subject = load_subject(subject_dir)
         avatar = load_avatar(run)

@@ -18,6 +18,7 @@ def test_bad_subject_gives_one_line_and_exit_2(tmp_path, capsys):
     assert "unknown config key 'bogus'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_render_and_eval_commands(tmp_path):
     from test_fit import TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 

@@ -1,4 +1,4 @@
-"""The fit: crop cameras, avatar files, the empty-render guard, a tiny end-to-end fit, kill and resume."""
+"""The fit: crop cameras, avatar files, config, the empty-render guard, a tiny end-to-end fit, kill and resume."""
 
 import json
 import os
@@ -15,7 +15,10 @@ from elicit_diffrender.animate import load_avatar
 from elicit_diffrender.avatar import Avatar, AvatarError
 from elicit_diffrender.config import ConfigError, make_config
 from elicit_diffrender.evaluate import psnr
-from elicit_diffrender.fit import FitError, Fitter, crop_image
+from elicit_diffrender.fit import FitError, Trainer
+from elicit_diffrender.fit.checkpoint import CHECKPOINT, read_checkpoint
+from elicit_diffrender.fit.views import crop_image
+from elicit_diffrender.io import read_tensors, write_tensors
 from elicit_diffrender.subject import load_subject
 from elicit_diffrender.synth import synthesize
 
@@ -50,7 +53,7 @@ def tiny_avatar(tiny_subject):
 
 def test_crop_camera_renders_exactly_the_crop(tiny_subject, tiny_avatar):
     cam = tiny_subject.cameras["cam00"]
-    frames = tiny_avatar.pose_frames(*tiny_subject.motion.frame(0))
+    frames = tiny_avatar.bone_transforms(*tiny_subject.motion.frame(0))
     full = tiny_avatar.render_image(cam, frames, 32)
     x0, y0, side = 30, 20, 40
     crop = tiny_avatar.render_image(cam.crop(x0, y0, side, side, side), frames, 32)
@@ -69,7 +72,7 @@ def test_without_occupancy_skipping_the_body_is_still_rendered(tiny_subject, tin
     cfg = make_config("cpu-fast", None, TINY)
     plain = Avatar.from_body(tiny_subject.body, tiny_subject.body_spec, cfg.voxel_size, occupancy_cell=0, weight_res=16)
     cam = tiny_subject.cameras["cam00"].scaled(0.5)
-    frames = plain.pose_frames(*tiny_subject.motion.frame(3))
+    frames = plain.bone_transforms(*tiny_subject.motion.frame(3))
     box, occ = plain.observation_space(frames)
     skip_box, _ = tiny_avatar.observation_space(frames)
     slack = 0.03  # pads and lattice offsets follow the cell: 6 cm cells (skipping) against 4 cm (bounds)
@@ -84,7 +87,7 @@ def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
     path = tiny_avatar.save(tmp_path / "a.pt")
     back = load_avatar(path)
     cam = tiny_subject.cameras["cam01"].scaled(0.5)
-    frames = back.pose_frames(*tiny_subject.motion.frame(2))
+    frames = back.bone_transforms(*tiny_subject.motion.frame(2))
     np.testing.assert_array_equal(
         back.render_image(cam, frames, 24)["rgb"], tiny_avatar.render_image(cam, frames, 24)["rgb"]
     )
@@ -98,99 +101,161 @@ def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
 def test_config_presets_files_and_overrides(tmp_path):
     cfg = make_config("paper")
     assert cfg.steps == 20000 and cfg.init_steps == 15000 and cfg.crop_size == 224 and cfg.clip_model == "ViT-L-14"
-    (tmp_path / "c.toml").write_text('steps = 12\nencoder = "random-features"\n')
+    assert cfg.init_frame_step == 10 and cfg.train_frame_step == 4
+    (tmp_path / "c.toml").write_text('steps = 12\nencoder = "random-features"\nlr = 1\n')
     cfg = make_config("cpu-fast", tmp_path / "c.toml", ["lr=0.5", "refine_input_pose=true"])
     assert cfg.steps == 12 and cfg.encoder == "random-features" and cfg.lr == 0.5 and cfg.refine_input_pose
     for bad, message in (
         (["nope=1"], "unknown config key"),
-        (["steps=many"], "expected a int"),
-        (["ablation=wild"], "ablation must be"),
+        (["steps=many"], "steps must be of type int"),
+        (["ablation=wild"], "ablation must be one of"),
         (["steps"], "key=value"),
+        (["checkpoint_every=0"], r"checkpoint_every must be in \[1"),
+        (["w_mse=-1"], "w_mse must be >= 0"),
+        (["train_poses=some"], "train_poses must be one of"),
     ):
         with pytest.raises(ConfigError, match=message):
             make_config("cpu-fast", None, bad)
     with pytest.raises(ConfigError, match="unknown preset"):
         make_config("fast")
+    (tmp_path / "bad.toml").write_text('voxel_size = "x"\n')
+    with pytest.raises(ConfigError, match=r"bad\.toml: voxel_size must be of type float, got 'x'"):
+        make_config("cpu-fast", tmp_path / "bad.toml")
+    (tmp_path / "bool.toml").write_text("steps = true\n")
+    with pytest.raises(ConfigError, match="steps must be of type int"):
+        make_config("cpu-fast", tmp_path / "bool.toml")
+
+
+def test_ablation_shorthand_expands_to_switches(tmp_path):
+    """Each of the paper's ablations is a named set of switches, from --set and from TOML alike."""
+    assert not make_config("cpu-fast", None, ["ablation=no_init"]).body_prior
+    assert make_config("cpu-fast", None, ["ablation=no_semantic"]).w_semantic == 0
+    cfg = make_config("cpu-fast", None, ["ablation=no_silhouette"])
+    assert cfg.w_silhouette == 0 and cfg.w_edge == 0
+    assert not make_config("cpu-fast", None, ["ablation=hard_silhouette"]).soft_silhouette
+    assert not make_config("cpu-fast", None, ["ablation=no_hybrid_sampling"]).hybrid_sampling
+    assert make_config("cpu-fast", None, ["ablation=input_pose_only"]).train_poses == "input"
+    (tmp_path / "a.toml").write_text('ablation = "no_init"\n')
+    assert not make_config("cpu-fast", tmp_path / "a.toml").body_prior
+    # Later keys override the shorthand's switches.
+    assert make_config("cpu-fast", None, ["ablation=no_semantic", "w_semantic=0.3"]).w_semantic == 0.3
+    assert "ablation" not in make_config("cpu-fast").__dict__
 
 
 def test_empty_render_guard_restores_and_lowers_the_lr(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY)
-    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
-    fitter.prepare()
-    good = fitter.snapshot()
-    assert fitter.input_coverage() > 0.5
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    trainer.guard.remember()
+    assert trainer.guard.coverage() > 0.5
     with torch.no_grad():
-        fitter.avatar.field.density.fill_(-40.0)  # the avatar went empty
-    assert fitter.input_coverage() < 0.01
-    fitter.guard(good)
-    assert fitter.input_coverage() > 0.5 and fitter.lr_scale == 0.5
-    assert len(fitter.stats.recoveries) == 1
+        trainer.avatar.field.density.fill_(-40.0)  # the avatar went empty
+    assert trainer.guard.coverage() < 0.01
+    trainer.check()
+    assert trainer.guard.coverage() > 0.5 and trainer.lr_scale == 0.5
+    assert len(trainer.stats.recoveries) == 1
 
 
 def test_guard_lets_an_empty_start_grow_but_catches_it_emptying(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["ablation=no_init"])
-    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
-    fitter.prepare()
-    good = fitter.snapshot()
-    start = fitter.input_coverage()
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    trainer.guard.remember()
+    start = trainer.guard.coverage()
     assert 0.0 < start < 0.2  # the grid starts (almost) empty without the body prior
-    fitter.guard(good)
-    assert not fitter.stats.recoveries  # low coverage alone is no collapse
+    trainer.check()
+    assert not trainer.stats.recoveries  # low coverage alone is no collapse
     with torch.no_grad():
-        fitter.avatar.field.density.fill_(-40.0)
-    fitter.guard(good)
-    assert len(fitter.stats.recoveries) == 1 and fitter.input_coverage() == pytest.approx(start)
+        trainer.avatar.field.density.fill_(-40.0)
+    trainer.check()
+    assert len(trainer.stats.recoveries) == 1 and trainer.guard.coverage() == pytest.approx(start)
 
 
 def test_stage2_density_lr_scales_only_the_density(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["stage2_density_lr=0.1"])
-    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
-    fitter.prepare()
-    lrs = {id(g["params"][0]): g["lr"] for g in fitter.opt.param_groups}
-    field = fitter.avatar.field
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    lrs = {id(g["params"][0]): g["lr"] for g in trainer.opt.param_groups}
+    field = trainer.avatar.field
     assert lrs[id(field.density)] == lrs[id(field.color)] == cfg.init_lr  # stage 1 is untouched
-    fitter.stage = 2
-    fitter.make_optimizer(cfg.lr)
-    lrs = {id(g["params"][0]): g["lr"] for g in fitter.opt.param_groups}
+    trainer.stage = 2
+    trainer.make_optimizer()
+    lrs = {id(g["params"][0]): g["lr"] for g in trainer.opt.param_groups}
     assert lrs[id(field.density)] == pytest.approx(0.1 * cfg.lr) and lrs[id(field.color)] == cfg.lr
 
 
 def test_unusable_checkpoint_gives_a_clear_error(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY)
-    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
-    fitter.prepare()
-    fitter.save_checkpoint()
-    data = torch.load(fitter.checkpoint_path(), weights_only=False)
+    run = tmp_path / "run"
+    trainer = Trainer(tiny_subject, cfg, run)
+    trainer.save()
+    data = read_tensors(run / CHECKPOINT)
     # An older layout: density and colour in one parameter group.
     groups = data["optimizer"]["param_groups"]
     groups[0]["params"] += groups.pop(1)["params"]
-    torch.save(data, fitter.checkpoint_path())
-    with pytest.raises(FitError, match=r"checkpoint\.pt: cannot resume"):
-        fitter.load_checkpoint()
-    fitter.checkpoint_path().write_bytes(b"junk")
-    with pytest.raises(FitError, match=r"checkpoint\.pt: cannot resume"):
-        fitter.load_checkpoint()
+    write_tensors(run / CHECKPOINT, data)
+    with pytest.raises(FitError, match=r"checkpoint\.safetensors: cannot resume"):
+        trainer.resume()
+    write_tensors(run / CHECKPOINT, {"format": "elicit-checkpoint/1", "step": 3})
+    with pytest.raises(FitError, match=r"not an elicit-checkpoint/2 checkpoint"):
+        trainer.resume()
+    (run / CHECKPOINT).write_bytes(b"junk")
+    with pytest.raises(FitError, match=r"checkpoint\.safetensors: cannot resume"):
+        trainer.resume()
+    (run / CHECKPOINT).unlink()
+    with pytest.raises(FitError, match="no checkpoint to resume from"):
+        trainer.run(resume=True)
+
+
+class StopAt(Trainer):
+    """A trainer that keeps a copy of its checkpoint at one stage-2 step (a kill, in effect)."""
+
+    keep_step = 20
+
+    def save(self) -> None:
+        super().save()
+        if self.stage == 2 and self.step == self.keep_step:
+            (self.run_dir / "kept.safetensors").write_bytes((self.run_dir / CHECKPOINT).read_bytes())
+
+
+def test_previews_and_resume_never_change_the_avatar(tmp_path, tiny_subject):
+    """Same seed, same avatar, bit for bit: with another preview cadence, and when resumed from a checkpoint."""
+    base = TINY + ["steps=30", "guard_every=15"]
+    a = StopAt(tiny_subject, make_config("cpu-fast", None, base + ["preview_every=7"]), tmp_path / "a")
+    a.run()
+    b = Trainer(tiny_subject, make_config("cpu-fast", None, base + ["preview_every=1000"]), tmp_path / "b")
+    b.run()
+    assert len(list((tmp_path / "a" / "previews").glob("*.png"))) > len(list((tmp_path / "b" / "previews").glob("*")))
+    for k, v in a.avatar.state_dict().items():
+        assert torch.equal(v, b.avatar.state_dict()[k]), k
+    # Resume from a's step-20 checkpoint in a fresh folder: the same avatar as a's uninterrupted fit.
+    c_dir = tmp_path / "c"
+    c_dir.mkdir()
+    (c_dir / CHECKPOINT).write_bytes((tmp_path / "a" / "kept.safetensors").read_bytes())
+    assert read_checkpoint(c_dir)["step"] == 20
+    c = Trainer(tiny_subject, make_config("cpu-fast", None, base + ["preview_every=1000"]), c_dir)
+    report = c.run(resume=True)
+    for k, v in a.avatar.state_dict().items():
+        assert torch.equal(v, c.avatar.state_dict()[k]), k
+    # Stage times add up over both runs: stage 1 ran only in a's, and still counts.
+    assert report["seconds"]["stage1"] > 0 and report["seconds"]["total"] >= report["seconds"]["stage2"]
 
 
 def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["p_novel=0.3"])
-    fitter = Fitter(tiny_subject, cfg, tmp_path / "run")
-    fitter.prepare()
-    cam = fitter.input_cam
-    target = fitter.input_image.permute(1, 2, 0).numpy()
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    cam = trainer.views.input.camera
+    target = trainer.views.input.image.permute(1, 2, 0).numpy()
     mask = np.ones(target.shape[:2], bool)
 
     def input_psnr():
-        frames = fitter.frames_for(tiny_subject.input_index)
-        return psnr(fitter.avatar.render_image(cam, frames, cfg.samples_per_ray)["rgb"], target, mask)
+        return psnr(trainer.renderer.image(cam, tiny_subject.input_index), target, mask)
 
-    fitter.run_stage(1, cfg.init_steps)
+    trainer.run_stage(1, cfg.init_steps)
     after_init = input_psnr()  # the template-textured body
-    fitter.run_stage(2, 150)
+    trainer.run_stage(2, 150)
     after_fit = input_psnr()
     assert after_fit > after_init + 2.0, (after_init, after_fit)
 
 
+@pytest.mark.slow
 def test_kill_and_resume(tmp_path, tiny_subject):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "elicit_diffrender.cli", "fit", str(tiny_subject.root), "--out", str(run)]
@@ -200,10 +265,9 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     deadline = time.time() + 300
     step = 0
     while time.time() < deadline and proc.poll() is None:
-        ckpt = run / "checkpoint.pt"
-        if ckpt.is_file():
+        if (run / CHECKPOINT).is_file():
             try:
-                data = torch.load(ckpt, weights_only=False)
+                data = read_checkpoint(run)
                 if data["stage"] == 2 and data["step"] >= 20:
                     step = data["step"]
                     break

@@ -85,7 +85,7 @@ def test_references_follow_the_paper():
     rng = np.random.default_rng(3)
     seen = set()
     for _ in range(2000):
-        v = plan_novel_view(rng, yaws, labels, 0, min_pixels=50)
+        v = plan_novel_view(rng, yaws, labels, min_pixels=50)
         seen.add((v.part == "head", v.direction, v.reference))
         if v.direction == "back":
             assert v.reference == "render" and sector(yaws[v.ref_camera]) in ("left", "right")
@@ -97,7 +97,7 @@ def test_references_follow_the_paper():
     assert (True, "left", "render") in seen and (False, "front", "input") in seen
     # Too few pixels for any part: after ten redraws the whole body is used.
     tiny = [np.where(lab >= 0, lab, -1) for lab in labels]
-    v = plan_novel_view(np.random.default_rng(0), yaws, tiny, 0, min_pixels=10_000)
+    v = plan_novel_view(np.random.default_rng(0), yaws, tiny, min_pixels=10_000)
     assert v.part == "full"
-    plain = plan_novel_view(np.random.default_rng(0), yaws, labels, 0, min_pixels=50, hybrid=False)
+    plain = plan_novel_view(np.random.default_rng(0), yaws, labels, min_pixels=50, hybrid=False)
     assert plain.part == "full" and plain.reference == "input"

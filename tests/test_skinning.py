@@ -5,16 +5,9 @@ import math
 import pytest
 import torch
 
+from elicit_diffrender.geometry import axis_angle_to_matrix, matrix_to_axis_angle, merge_bones, rigid_inverse
 from elicit_diffrender.reference import forward_lbs_reference, inverse_lbs_reference
-from elicit_diffrender.skinning import (
-    axis_angle_to_matrix,
-    forward_lbs,
-    inverse_lbs,
-    matrix_to_axis_angle,
-    merge_bones,
-    merge_weights,
-    rigid_inverse,
-)
+from elicit_diffrender.skinning import forward_lbs, inverse_lbs
 
 WBOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
 
@@ -184,14 +177,10 @@ def test_forward_then_inverse_round_trip():
     torch.testing.assert_close(back, verts, atol=1e-12, rtol=0)
 
 
-def test_merge_bones_and_weights():
+def test_merge_bones():
     parents = [-1, 0, 1, 2, 1, 4, 0]
     mapping = merge_bones(parents, keep=[0, 1, 4])
     assert mapping.tolist() == [0, 1, 1, 1, 2, 2, 0]
-    w = torch.eye(7, dtype=torch.float64)
-    merged = merge_weights(w, mapping, 3)
-    assert merged.sum(1).tolist() == [1.0] * 7
-    assert merged[:, 1].sum() == 3
     with pytest.raises(ValueError, match="root"):
         merge_bones(parents, keep=[1])
 

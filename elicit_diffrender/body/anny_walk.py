@@ -13,15 +13,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from .anny_model import ANNY_TO_WORLD, AnnyBody
-
-if TYPE_CHECKING:
-    from ..motions import Motion
 
 WALK_CYCLE_FILE = Path("mpfb2") / "walkcycles" / "crappy_experimental_female.json"
 # MPFB's root bone runs from behind the pelvis to its front (Blender coordinates of the default rig):
@@ -157,10 +154,19 @@ def _solve_limb(
     return rots, (reach, bend)
 
 
-def anny_walk_cycle(body: AnnyBody, n_frames: int = 40, ik_steps: int = 300) -> tuple[Motion, dict[str, float]]:
+class Clip(NamedTuple):
+    """A motion's arrays (see ``motions.Motion``): (F, J, 3) pose, (F, 3) global_orient and transl, fps."""
+
+    pose: np.ndarray
+    global_orient: np.ndarray
+    transl: np.ndarray
+    fps: float
+
+
+def anny_walk_cycle(body: AnnyBody, n_frames: int = 40, ik_steps: int = 300) -> tuple[Clip, dict[str, float]]:
     """Anny's walk cycle resampled to ``n_frames`` frames of one loop, walking in place.
 
-    Returns the motion and, per IK target, the largest distance (m) left between the joint and the
+    Returns the clip and, per IK target, the largest distance (m) left between the joint and the
     target over the clip (feet and hands are reached; knee and elbow targets are only pulled toward).
     """
     doc = json.loads(walk_cycle_path().read_text())
@@ -226,8 +232,6 @@ def anny_walk_cycle(body: AnnyBody, n_frames: int = 40, ik_steps: int = 300) -> 
     local = model.get_pose_parameterization({"rest_bone_poses": anny_rest[None], "bone_poses": world}, "local-ref")
     import roma
 
-    from ..motions import Motion
-
     pose = roma.rotmat_to_rotvec(local[..., :3, :3]).numpy()
     orient = np.zeros((n, 3))
     posed = body.pose_batch(pose, orient, np.zeros((n, 3)))
@@ -239,4 +243,4 @@ def anny_walk_cycle(body: AnnyBody, n_frames: int = 40, ik_steps: int = 300) -> 
     transl -= stride[None] * (t / last)[:, None]
     floor = body.rest_vertices[:, 1].min()
     transl[:, 1] += floor - min((p.vertices[:, 1] + d[1]).min() for p, d in zip(posed, transl, strict=True))
-    return Motion(pose, orient, transl, None, 24.0 * n_frames / last, "anny_walk"), reach_error
+    return Clip(pose, orient, transl, 24.0 * n_frames / last), reach_error

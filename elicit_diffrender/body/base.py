@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ..errors import ElicitError
-from ..skinning import axis_angle_to_matrix
+from ..geometry import axis_angle_to_matrix, merge_bones
 
 # The reference code's body-part groups (plus background, the 11 labels of its segmentation).
 PART_NAMES = (
@@ -116,8 +116,6 @@ class BodyModel(ABC):
 
     def reduced_map(self) -> np.ndarray:
         """(J,) index into ``reduced_joints`` of each joint's nearest kept ancestor (itself if kept)."""
-        from ..skinning import merge_bones
-
         keep = [self.joint_index(n) for n in self.reduced_joints]
         return merge_bones(self.parents.tolist(), keep).numpy()
 

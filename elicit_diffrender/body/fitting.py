@@ -11,12 +11,14 @@ joints and mesh points to MediaPipe's 33 landmarks (``KEYPOINTS``) and the mesh 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..skinning import axis_angle_to_matrix, matrix_to_axis_angle
+from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from .anny_model import ANNY_TO_WORLD, AnnyBody, anny_model
 
 # SMPL joint index -> Anny joint, for the joints whose anatomy agrees between the two rigs.
@@ -26,9 +28,13 @@ SMPL_TO_ANNY = {
     19: "lowerarm01.R", 20: "wrist.L", 21: "wrist.R",
 }  # fmt: skip
 TORSO_SMPL = (0, 1, 2, 12, 16, 17)
+# A differentiable silhouette of the body through the photo's camera: camera-space vertices (V, 3) -> (H, W)
+# alpha, and the factory that builds one from the mesh's faces and vertex count (``elicit prepare`` passes
+# Mitsuba's; the body package itself renders nothing).
+SilhouetteRender = Callable[[torch.Tensor], torch.Tensor]
+SilhouetteFactory = Callable[[np.ndarray, int], SilhouetteRender]
 FIT_STEPS = 240  # keypoint steps, then as many with the point-to-mask silhouette (half each)
-RENDER_STEPS = 120  # steps on the differentiable Mitsuba silhouette
-RENDER_SIZE = 160  # its longer image side, pixels
+RENDER_STEPS = 120  # steps on the differentiable silhouette
 RENDER_LR = 0.01  # Adam step size on the differentiable silhouette
 RENDER_WEIGHT = 12.0  # its weight against the keypoint and prior terms
 FREE_JOINTS = (
@@ -217,22 +223,20 @@ class ImageTargets:
         )
 
 
-def _rendered_silhouette_loss(fit: AnnyFit, K: np.ndarray, mask: np.ndarray, other, size: int):
-    """``other() + RENDER_WEIGHT * mean((A - M)^2)`` with A the body's differentiable Mitsuba silhouette."""
-    from ..cameras import Camera
-    from ..mesh_render import DifferentiableSilhouette
-
-    h, w = mask.shape
-    camera = Camera(K, np.eye(3), np.zeros(3), w, h).scaled(min(1.0, size / max(w, h)))
-    faces = fit.model.get_triangular_faces().cpu().numpy()
-    render = DifferentiableSilhouette(faces, int(fit.model.template_vertices.shape[-2]), camera)
-    target = F.interpolate(
-        torch.as_tensor(mask, dtype=torch.float32)[None, None], size=(camera.height, camera.width), mode="area"
-    )[0, 0]
+def _rendered_silhouette_loss(fit: AnnyFit, mask: np.ndarray, render: SilhouetteRender, other):
+    """``other() + RENDER_WEIGHT * mean((A - M)^2)`` with A the body's rendered silhouette and M the mask
+    resized to A's resolution."""
+    target: torch.Tensor | None = None
 
     def loss():
+        nonlocal target
         verts, _ = fit()
-        return other() + RENDER_WEIGHT * ((render(verts) - target) ** 2).mean()
+        alpha = render(verts)
+        if target is None:
+            target = F.interpolate(
+                torch.as_tensor(mask, dtype=torch.float32)[None, None], size=tuple(alpha.shape), mode="area"
+            )[0, 0]
+        return other() + RENDER_WEIGHT * ((alpha - target) ** 2).mean()
 
     return loss
 
@@ -243,13 +247,13 @@ def fit_anny_to_image(
     keypoints: np.ndarray | None,
     joints3d: np.ndarray | None = None,
     steps: int = FIT_STEPS,
+    render_silhouette: SilhouetteFactory | None = None,
     render_steps: int = RENDER_STEPS,
-    render_size: int = RENDER_SIZE,
 ) -> dict:
     """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
     visibility, pixels) and/or camera-space SMPL joints, then the silhouette: first a fast
-    point-to-mask distance, then ``render_steps`` steps on a differentiable Mitsuba silhouette
-    rendered with the longer image side at ``render_size`` pixels."""
+    point-to-mask distance, then ``render_steps`` steps on the differentiable silhouette that
+    ``render_silhouette(faces, n_vertices)`` renders (skipped without one)."""
     if keypoints is None and joints3d is None:
         raise ValueError("the image fit needs 2D keypoints or 3D joints")
     targets = ImageTargets(K, mask, keypoints)
@@ -359,8 +363,10 @@ def fit_anny_to_image(
 
     _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
     _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
-    if render_steps > 0:
-        _optimise(fit, list(fit.parameters()), _rendered_silhouette_loss(fit, K, mask, fine(False), render_size),
+    if render_silhouette is not None and render_steps > 0:
+        faces = fit.model.get_triangular_faces().cpu().numpy()
+        render = render_silhouette(faces, int(fit.model.template_vertices.shape[-2]))
+        _optimise(fit, list(fit.parameters()), _rendered_silhouette_loss(fit, mask, render, fine(False)),
                   render_steps, RENDER_LR)  # fmt: skip
     with torch.no_grad():
         verts, heads = fit()

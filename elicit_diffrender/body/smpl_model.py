@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..skinning import axis_angle_to_matrix, merge_bones
+from ..geometry import axis_angle_to_matrix, merge_bones
 from .base import PART_NAMES, BodyModel, BodyModelError, PosedBody, apply_global, check_pose
 
 SMPL_JOINTS = [

@@ -1,0 +1,189 @@
+"""The ELICIT objective: each step's unweighted loss terms by name, weighted in one place (``total``).
+
+* stage 1: a patch of a body-prior render from a ring camera: ``perceptual``, ``mse``, ``alpha``;
+* stage 2, input step: a patch of the input photo: ``perceptual``, ``mse``;
+* stage 2, novel step: a hybrid-sampled (pose, camera, part) crop: ``silhouette`` and ``edge`` against
+  the body's mask, ``opacity`` (binary entropy), ``semantic`` against a reference crop, ``text``;
+* every step: ``tv`` (grid smoothness) and, in stage 2, ``sparsity`` (density outside the body).
+
+A term whose weight is 0 is not computed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..body import BodyModel
+from ..body.template import vertex_normals
+from ..config import FitConfig
+from ..encoders import load_encoder
+from ..field import CanonicalField, grid_points, signed_distance
+from ..losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
+from ..sampling import NovelView, crop_window, part_pixels, plan_novel_view
+from .render import PoseRenderer
+from .streams import RandomStreams
+from .views import FitViews, crop_image, min_part_pixels, random_patch
+
+# Loss term -> the config key of its weight.
+TERMS = {
+    "perceptual": "w_perceptual",
+    "mse": "w_mse",
+    "alpha": "w_init_alpha",
+    "silhouette": "w_silhouette",
+    "edge": "w_edge",
+    "opacity": "w_opacity",
+    "semantic": "w_semantic",
+    "text": "w_text",
+    "tv": "w_tv",
+    "sparsity": "w_sparsity",
+}
+Terms = dict[str, torch.Tensor]
+
+
+def outside_body(body: BodyModel, field: CanonicalField, device: torch.device) -> torch.Tensor:
+    """1 for grid cells more than one cell outside the canonical body (where density is clothing)."""
+    canon = body.pose(body.canonical_pose())
+    pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
+    sdf = signed_distance(pts, canon.vertices, vertex_normals(canon.vertices, body.faces))
+    return torch.as_tensor((sdf > field.voxel_size).reshape(field.shape), dtype=torch.float32, device=device)
+
+
+class Objective:
+    def __init__(self, cfg: FitConfig, views: FitViews, renderer: PoseRenderer, streams: RandomStreams, body) -> None:
+        self.cfg, self.views, self.renderer, self.streams = cfg, views, renderer, streams
+        self.device = renderer.avatar.device
+        self.field = renderer.avatar.field
+        self.weights = {name: float(getattr(cfg, key)) for name, key in TERMS.items()}
+        self.encoder, self.encoder_info = None, None
+        if self.on("semantic") or self.on("text"):
+            self.encoder, self.encoder_info = load_encoder(cfg.encoder, cfg.clip_model, cfg.clip_pretrained)
+            self.encoder.to(self.device)
+        self.text_embedding = None
+        if cfg.text_prompt and self.on("text") and self.encoder is not None:
+            self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
+        self.perceptual = Perceptual(cfg.perceptual, self.device)
+        self.outside_body = outside_body(body, self.field, self.device) if self.on("sparsity") else None
+        self.skipped_references = 0  # semantic steps without a usable reference crop
+
+    def on(self, name: str) -> bool:
+        return self.weights[name] > 0
+
+    def total(self, terms: Terms) -> torch.Tensor:
+        """The step's loss: every term times its weight."""
+        loss = torch.zeros((), device=self.device)
+        for name, value in terms.items():
+            loss = loss + self.weights[name] * value
+        return loss
+
+    # ---- the three kinds of step ------------------------------------------------------------------------
+    def _reconstruction(self, render: torch.Tensor, target: torch.Tensor) -> Terms:
+        terms: Terms = {}
+        if self.on("perceptual"):
+            terms["perceptual"] = self.perceptual(render, target)
+        if self.on("mse"):
+            terms["mse"] = mse(render, target)
+        return terms
+
+    def _tensor(self, array) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(array, dtype=np.float32), device=self.device)
+
+    def stage1(self) -> Terms:
+        """Reconstruct a patch of a template-textured body render (random background)."""
+        rng, prior, poses = self.streams.sampling, self.views.prior, self.views.poses[1]
+        pose = poses[int(rng.integers(len(poses)))]
+        row, ci = prior.rows[pose], int(rng.integers(len(self.views.ring)))
+        size = min(self.cfg.crop_size, self.cfg.label_size)
+        alpha = prior.alpha[row, ci].astype(np.float32) / 255.0
+        x0, y0 = random_patch(rng, alpha > 0.5, size)
+        cam = self.views.ring[ci].crop(x0, y0, size, size, size)
+        bg = self.streams.background(self.device)
+        out = self.renderer.render(cam, pose, bg)
+        color = self._tensor(prior.color[row, ci, y0 : y0 + size, x0 : x0 + size]) / 255.0
+        a = self._tensor(alpha[y0 : y0 + size, x0 : x0 + size])
+        target = (color * a[..., None] + bg * (1 - a[..., None])).permute(2, 0, 1)[None]
+        terms = self._reconstruction(out["rgb"], target)
+        if self.on("alpha"):
+            terms["alpha"] = mse(out["alpha"][0], a)
+        return terms
+
+    def input_patch(self) -> Terms:
+        """Reconstruct a patch of the input image (random background)."""
+        view = self.views.input
+        size = min(self.cfg.crop_size, view.camera.width, view.camera.height)
+        x0, y0 = random_patch(self.streams.sampling, view.person, size)
+        cam = view.camera.crop(x0, y0, size, size, size)
+        bg = self.streams.background(self.device)
+        out = self.renderer.render(cam, self.renderer.input_pose, bg)
+        m = view.mask[y0 : y0 + size, x0 : x0 + size]
+        target = view.image[:, y0 : y0 + size, x0 : x0 + size] * m + bg[:, None, None] * (1 - m)
+        return self._reconstruction(out["rgb"], target[None])
+
+    def novel_view(self) -> Terms | None:
+        """A hybrid-sampled novel (pose, camera) crop: silhouette, edge, opacity and semantic terms."""
+        rng, prior, poses = self.streams.sampling, self.views.prior, self.views.poses[2]
+        pose = poses[int(rng.integers(len(poses)))]
+        row = prior.rows[pose]
+        labels = prior.labels[row]
+        min_px = min_part_pixels(self.cfg.part_min_pixels, self.views.ring[0])
+        view = plan_novel_view(rng, prior.yaws[row], labels, min_px, self.cfg.hybrid_sampling)
+        if view is None:
+            return None
+        size = self.cfg.crop_size
+        cam = self.views.ring[view.camera].crop(*view.window[:2], view.window[2], view.window[2], size)
+        out = self.renderer.render(cam, pose, torch.zeros(3, device=self.device))
+        body = torch.as_tensor((labels[view.camera] >= 0).astype(np.float32))[None]
+        mask_host = crop_image(body, view.window, size)[0].clamp(0, 1)
+        mask = mask_host.to(self.device)
+        terms: Terms = {}
+        if self.on("silhouette"):
+            terms["silhouette"] = silhouette_loss(out["alpha"][0], mask, soft=self.cfg.soft_silhouette)
+        if self.on("edge"):
+            dist = self._tensor(edge_distance(mask_host.numpy() > 0.5))
+            terms["edge"] = edge_loss(out["alpha"], mask[None], dist[None])
+        if self.on("opacity"):
+            terms["opacity"] = opacity_entropy(out["alpha"])
+        if self.encoder is not None and (self.on("semantic") or self.text_embedding is not None):
+            ref = self._reference(view, pose)
+            if ref is None:
+                self.skipped_references += 1
+            else:
+                ref_img, ref_mask = ref
+                part = crop_image(self._tensor(part_pixels(labels[view.camera], view.part))[None], view.window, size)
+                emb = self.encoder(torch.cat([ref_img, out["rgb"]]), torch.cat([ref_mask, part]))
+                if self.on("semantic"):
+                    terms["semantic"] = semantic_loss(emb[:1].detach(), emb[1:])
+                if self.text_embedding is not None:
+                    terms["text"] = semantic_loss(self.text_embedding[None], emb[1:])
+        return terms
+
+    def _reference(self, view: NovelView, pose: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The semantic reference crop and its part mask: the input image's matching crop, or a no-grad
+        render from the nearest side (rear views) or front (side views of the head) camera."""
+        size = self.cfg.crop_size
+        if view.reference == "render":
+            mask = part_pixels(self.views.prior.labels[self.views.prior.rows[pose], view.ref_camera], view.part)
+            window = crop_window(mask, view.part)
+            if window is None:
+                return None
+            cam = self.views.ring[view.ref_camera].crop(*window[:2], window[2], window[2], size)
+            black = torch.zeros(3, device=self.device)
+            image = self.renderer.render(cam, pose, black, grad=False)["rgb"].detach()
+        else:
+            source = self.views.input
+            mask = part_pixels(source.labels, view.part)
+            if mask.sum() < min_part_pixels(self.cfg.part_min_pixels, source.camera):
+                return None
+            window = crop_window(mask, view.part)
+            image = crop_image(source.image, window, size)[None]
+        return image, crop_image(self._tensor(mask)[None], window, size)
+
+    def regularisers(self, stage: int) -> Terms:
+        """Grid smoothness (both stages) and sparsity outside the body (stage 2), on one random block."""
+        block = self.field.random_block(generator=self.streams.blocks)
+        terms: Terms = {}
+        if self.on("tv"):
+            terms["tv"] = self.field.tv_loss(block)
+        if stage == 2 and self.on("sparsity"):
+            terms["sparsity"] = self.field.sparsity_loss(block, self.outside_body)
+        return terms

@@ -1,0 +1,91 @@
+"""Renders the avatar being fitted at the training poses: cached bone transforms and observation spaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..avatar import Avatar
+from ..cameras import Camera
+from ..subject import Subject
+from .streams import RandomStreams
+
+SPACE_REFRESH = 50  # steps between observation-space updates while the warp itself is learned
+
+
+class PoseRenderer:
+    """Differentiable crops and full images of the avatar in the subject's motion poses.
+
+    The observation-space box and occupancy of a pose are cached; when the motion weights (or the
+    refined input pose) are being learned they are rebuilt every ``SPACE_REFRESH`` steps. Training
+    renders jitter their samples with seeds from ``streams.jitter``; renders without gradients draw
+    nothing from any stream.
+    """
+
+    def __init__(
+        self,
+        avatar: Avatar,
+        subject: Subject,
+        poses: list[int],
+        samples_per_ray: int,
+        t_thresh: float,
+        refine_input_pose: bool,
+        streams: RandomStreams,
+    ) -> None:
+        self.avatar, self.streams = avatar, streams
+        self.samples_per_ray, self.t_thresh = samples_per_ray, t_thresh
+        self.input_pose = subject.input_index
+        self.refine_input_pose = refine_input_pose
+        self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p)) for p in poses}
+        self._spaces: dict[int, tuple] = {}
+        self._space_key = -1
+
+    def bones(self, pose: int) -> torch.Tensor:
+        """(B, 4, 4) bone transforms of a training pose, with the learned correction on the input pose."""
+        bones = self._bones[pose]
+        if self.refine_input_pose and pose == self.input_pose:
+            return self.avatar.refined(bones)
+        return bones
+
+    def _moving(self, pose: int) -> bool:
+        return self.avatar.motion_weights.logits.requires_grad or (self.refine_input_pose and pose == self.input_pose)
+
+    def refresh(self, step: int) -> None:
+        """Drop the cached spaces of poses whose warp is learned, once every ``SPACE_REFRESH`` steps."""
+        key = step // SPACE_REFRESH
+        if key != self._space_key:
+            self._space_key = key
+            self._spaces = {p: s for p, s in self._spaces.items() if not self._moving(p)}
+
+    def space(self, pose: int) -> tuple:
+        if pose not in self._spaces:
+            self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach())
+        return self._spaces[pose]
+
+    def render(
+        self, camera: Camera, pose: int, background: torch.Tensor, outputs=("rgb", "alpha"), grad: bool = True
+    ) -> dict[str, torch.Tensor]:
+        """Render ``camera``'s pixels: ``alpha`` (1, H, W) and, if asked, ``rgb`` (1, 3, H, W)."""
+        origins, dirs = camera.rays(device=self.avatar.device)
+        with torch.set_grad_enabled(grad):
+            out = self.avatar.render_rays(
+                origins,
+                dirs,
+                self.bones(pose),
+                self.samples_per_ray,
+                background,
+                jitter=grad,
+                seed=self.streams.jitter_seed() if grad else 0,
+                outputs=outputs,
+                t_thresh=self.t_thresh,
+                space=self.space(pose),
+            )
+        h, w = camera.height, camera.width
+        res = {"alpha": out["alpha"].reshape(1, h, w)}
+        if "rgb" in out:
+            res["rgb"] = out["rgb"].reshape(h, w, 3).permute(2, 0, 1)[None]
+        return res
+
+    def image(self, camera: Camera, pose: int) -> np.ndarray:
+        """A full (H, W, 3) image on black, without gradients (previews)."""
+        return self.avatar.render_image(camera, self.bones(pose), self.samples_per_ray)["rgb"]

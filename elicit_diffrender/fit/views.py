@@ -1,0 +1,173 @@
+"""What the fit looks at: the input view, the camera ring, body-prior renders of the training poses, crops.
+
+Poses are indices into the subject's motion. Stage 1 trains on every ``init_frame_step``-th pose,
+stage 2 draws its novel poses from every ``train_frame_step``-th (the input pose first in both);
+the body prior (template colour, opacity and part labels from every ring camera) is rendered once
+for all of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ..body import PART_NAMES, BodyModel
+from ..body.template import template_colors
+from ..cameras import Camera
+from ..config import FitConfig
+from ..mesh_render import MeshAppearance, MeshRenderer
+from ..rigs import place_cameras, read_rig, ring_cameras, shipped_rig_path
+from ..sampling import body_yaw
+from ..subject import Subject
+
+RING_SIZE = 512  # image size of the shipped ring rig
+PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
+CENTRED_PATCH_P = 0.9  # probability that a patch is centred on the person
+
+
+def crop_image(image: torch.Tensor, window: tuple[float, float, float], size: int) -> torch.Tensor:
+    """Resample the square ``window`` (x0, y0, side) of a (C, H, W) image to (C, size, size); zero outside."""
+    c, h, w = image.shape
+    x0, y0, side = window
+    centres = (torch.arange(size, dtype=torch.float32, device=image.device) + 0.5) * (side / size)
+    gx = (x0 + centres) / w * 2 - 1
+    gy = (y0 + centres) / h * 2 - 1
+    grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None]
+    return F.grid_sample(image[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+
+
+def min_part_pixels(part_min_pixels: int, camera: Camera) -> int:
+    """The smallest body part worth a crop in ``camera``'s image: ``part_min_pixels`` scaled by image area."""
+    return int(part_min_pixels * camera.width * camera.height / PART_PIXELS_AT)
+
+
+def random_patch(rng: np.random.Generator, mask: np.ndarray, size: int) -> tuple[int, int]:
+    """Top-left corner of a size x size patch, centred on the person with probability ``CENTRED_PATCH_P``."""
+    h, w = mask.shape
+    if rng.random() < CENTRED_PATCH_P and mask.any():
+        ys, xs = np.nonzero(mask)
+        k = rng.integers(xs.size)
+        cx, cy = xs[k], ys[k]
+    else:
+        cx, cy = rng.integers(w), rng.integers(h)
+    return int(np.clip(cx - size // 2, 0, max(0, w - size))), int(np.clip(cy - size // 2, 0, max(0, h - size)))
+
+
+def training_poses(subject: Subject, step: int, input_only: bool) -> list[int]:
+    """The input pose, then every ``step``-th pose of the motion (only the input pose with ``input_only``)."""
+    idx = subject.input_index
+    if input_only:
+        return [idx]
+    return [idx] + [i for i in range(0, len(subject.motion), max(1, step)) if i != idx]
+
+
+def body_rotation(body: BodyModel, bone_transforms: np.ndarray) -> np.ndarray:
+    """The posed pelvis's rotation relative to its rest orientation (the body's facing)."""
+    pelvis = body.joint_index(body.semantic["pelvis"])
+    rest = body.pose(body.zero_pose()).bone_transforms[pelvis, :3, :3]
+    return bone_transforms[pelvis, :3, :3] @ rest.T
+
+
+def place_ring(subject: Subject, n: int, size: int) -> list[Camera]:
+    """The shipped ring, centred on the input pose's pelvis, upright for the input camera, facing the body."""
+    body = subject.body
+    posed = body.pose(*subject.motion.frame(subject.input_index))
+    pelvis = body.joint_index(body.semantic["pelvis"])
+    rot_body = body_rotation(body, posed.bone_transforms)
+    up = -subject.cameras[subject.input_camera].R[1]
+    facing = rot_body[:, 2] - (rot_body[:, 2] @ up) * up
+    facing /= np.linalg.norm(facing)
+    place = np.stack([np.cross(up, facing), up, facing], axis=1)
+    cams = read_rig(shipped_rig_path("ring"))
+    if n != len(cams):
+        cams = ring_cameras(n=n)
+    return [c.scaled(size / RING_SIZE) for c in place_cameras(cams, place, posed.bone_transforms[pelvis, :3, 3])]
+
+
+@dataclass
+class PriorViews:
+    """Body-prior renders of the training poses from every ring camera (stage 1 targets, stage 2 crops)."""
+
+    rows: dict[int, int]  # pose -> row of the arrays below
+    color: np.ndarray  # (P, C, H, W, 3) uint8 template colour
+    alpha: np.ndarray  # (P, C, H, W) uint8
+    labels: np.ndarray  # (P, C, H, W) int8 body parts, -1 background
+    yaws: np.ndarray  # (P, C) body-relative yaw of each camera, degrees
+
+    @classmethod
+    def render(cls, subject: Subject, poses: list[int], ring: list[Camera], renderer: MeshRenderer) -> PriorViews:
+        body = subject.body
+        colors, alphas, labels, yaws = [], [], [], []
+        for pose in tqdm(poses, desc="body-prior renders", unit="pose", leave=False):
+            posed = body.pose(*subject.motion.frame(pose))
+            out = renderer.render(posed.vertices, ring, ("color", "alpha", "labels"), spp=4)
+            colors.append((np.clip(out["color"], 0, 1) * 255 + 0.5).astype(np.uint8))
+            alphas.append((out["alpha"] * 255 + 0.5).astype(np.uint8))
+            labels.append(out["labels"].astype(np.int8))
+            rot = body_rotation(body, posed.bone_transforms)
+            yaws.append([body_yaw(c, rot) for c in ring])
+        rows = {pose: i for i, pose in enumerate(poses)}
+        return cls(rows, np.stack(colors), np.stack(alphas), np.stack(labels), np.array(yaws))
+
+
+@dataclass
+class InputView:
+    """The input photo at the working scale, on black, with its mask and the body's part labels."""
+
+    camera: Camera
+    image: torch.Tensor  # (3, H, W) on the fit's device
+    mask: torch.Tensor  # (H, W) 0/1 float on the fit's device
+    person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
+    labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
+
+    @classmethod
+    def load(cls, subject: Subject, scale: float, renderer: MeshRenderer, device: torch.device) -> InputView:
+        camera = subject.cameras[subject.input_camera].scaled(scale)
+        img = torch.as_tensor(subject.image(subject.input_camera, subject.input_frame)).permute(2, 0, 1)
+        msk = torch.as_tensor(subject.mask(subject.input_camera, subject.input_frame), dtype=torch.float32)[None]
+        size = (camera.height, camera.width)
+        mask = (F.interpolate(msk[None], size=size, mode="area")[0, 0] > 0.5).float()
+        image = F.interpolate(img[None], size=size, mode="area")[0] * mask
+        posed = subject.body.pose(*subject.motion.frame(subject.input_index))
+        labels = renderer.render(posed.vertices, [camera], ("labels",))["labels"][0]
+        return cls(camera, image.to(device), mask.to(device), mask.numpy() > 0.5, labels)
+
+    def part_colors(self) -> np.ndarray:
+        """(P, 3) mean colour of every body part in the image (the whole person's where a part is unseen)."""
+        img = self.image.permute(1, 2, 0).cpu().numpy()
+        person = self.person & (self.labels >= 0)
+        overall = img[person].mean(0) if person.any() else np.full(3, 0.5)
+        out = np.tile(overall, (len(PART_NAMES), 1))
+        for p in range(len(PART_NAMES)):
+            sel = person & (self.labels == p)
+            if sel.sum() >= 20:
+                out[p] = img[sel].mean(0)
+        return out
+
+
+@dataclass
+class FitViews:
+    """Everything the fit's losses compare against, built once before training."""
+
+    input: InputView
+    ring: list[Camera]
+    prior: PriorViews
+    poses: dict[int, list[int]]  # stage -> its training poses
+
+    @classmethod
+    def build(cls, subject: Subject, cfg: FitConfig, device: torch.device) -> FitViews:
+        body = subject.body
+        renderer = MeshRenderer(body.faces, MeshAppearance(vertex_colors=template_colors(body)), body.face_parts())
+        input_only = cfg.train_poses == "input"
+        poses = {
+            1: training_poses(subject, cfg.init_frame_step, input_only),
+            2: training_poses(subject, cfg.train_frame_step, input_only),
+        }
+        ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
+        needed = list(dict.fromkeys(poses[1] + poses[2]))
+        prior = PriorViews.render(subject, needed, ring, renderer)
+        return cls(InputView.load(subject, cfg.input_scale, renderer, device), ring, prior, poses)
