@@ -48,28 +48,55 @@ def resolve_cameras(spec: str, size: int) -> tuple[list[Camera], Motion | None]:
 
 
 def load_avatar(run: str | Path):
-    """The fitted model of a run folder (or its ``avatar.pt``): an :class:`Avatar`, or the explicit-texture
-    baseline's :class:`TexturedBody`. Both render with ``render_pose(camera, pose, orient, transl)``."""
-    import torch
+    """The fitted model of a run folder (or its avatar file): an :class:`Avatar`, or the explicit-texture
+    baseline's :class:`TexturedBody`. Both render with ``render_pose(camera, pose, orient, transl)``.
 
-    from .avatar import AvatarError
+    ``avatar.safetensors`` holds tensors and JSON only; an ``avatar.pt`` of earlier versions is read with
+    ``torch.load(weights_only=True)``, which builds tensors and containers and nothing else."""
+    from .avatar import AVATAR_FILE, LEGACY_FILE, AvatarError
     from .baseline import FORMAT as TEXTURED
+    from .baseline import LEGACY_FORMAT as LEGACY_TEXTURED
     from .baseline import TexturedBody
 
     path = Path(run)
-    path = path / "avatar.pt" if path.is_dir() else path
+    if path.is_dir():
+        path = path / (
+            LEGACY_FILE if (path / LEGACY_FILE).is_file() and not (path / AVATAR_FILE).exists() else AVATAR_FILE
+        )
     if not path.is_file():
         raise AvatarError(f"{path}: avatar file not found (did the fit finish?)")
+    data = read_model_file(path)
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt files
-        raise AvatarError(f"{path}: unreadable avatar file ({exc})") from exc
-    if isinstance(data, dict) and data.get("format") == TEXTURED:
-        return TexturedBody.from_state(data)
-    try:
+        if isinstance(data, dict) and data.get("format") in (TEXTURED, LEGACY_TEXTURED):
+            return TexturedBody.from_state(data)
         return Avatar.from_state(data).to(default_device())
-    except AvatarError as exc:
+    except ElicitError as exc:
         raise AvatarError(f"{path}: {exc}") from None
+
+
+def read_model_file(path: Path) -> dict:
+    """The state in an avatar file (``.safetensors``, or a legacy ``.pt``), never running code from it."""
+    from .avatar import AvatarError
+    from .io import read_tensors
+
+    if path.suffix == ".safetensors":
+        try:
+            return read_tensors(path)
+        except ValueError as exc:
+            raise AvatarError(f"{path}: unreadable avatar file ({exc})") from None
+    if path.suffix != ".pt":
+        raise AvatarError(f"{path}: not an avatar file (expected avatar.safetensors, or avatar.pt of earlier versions)")
+    import pickle
+
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
+        raise AvatarError(
+            f"{path}: unreadable avatar file ({type(exc).__name__}); avatar files of every elicit version hold "
+            "only tensors, numbers, strings, lists and dicts, so this one is damaged or was not written by elicit"
+        ) from None
 
 
 def render_sequence(

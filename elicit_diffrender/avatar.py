@@ -21,13 +21,17 @@ from .cameras import Camera
 from .errors import ElicitError
 from .field import CanonicalField, MotionWeights, grid_points, grid_shape
 from .geometry import axis_angle_to_matrix, rigid_inverse
-from .io import atomic_write
+from .io import write_tensors
 from .skinning import inverse_lbs
 from .volume import composite, sample_rays
 
-FORMAT = "elicit-avatar/1"
-# Tensor names of earlier files of this format: renamed, or (None) no longer stored.
+FORMAT = "elicit-avatar/2"  # a safetensors file: the tensors, and the rest as JSON in its header
+AVATAR_FILE = "avatar.safetensors"  # in a run folder
+LEGACY_FORMAT = "elicit-avatar/1"  # avatar.pt from earlier versions, read with torch.load(weights_only=True)
+LEGACY_FILE = "avatar.pt"
+# Tensor names of elicit-avatar/1 files: renamed, or (None) no longer stored.
 LEGACY_TENSORS = {"canonical_frames": "canonical_bones", "clothing_room": None}
+FIELDS = ("body", "reduced_joints", "parents", "config", "voxel_size", "activation", "occupancy_cell", "weight_res")
 BOUNDS_CELL = 0.04  # metres: lattice that bounds the posed body when occupancy skipping is off
 
 
@@ -269,28 +273,36 @@ class Avatar(nn.Module):
         }
 
     def save(self, path: str | Path) -> Path:
-        data = self.state()
-        return atomic_write(path, lambda p: torch.save(data, p))
+        return write_tensors(path, self.state())
 
     @classmethod
     def from_state(cls, data: dict) -> Avatar:
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise AvatarError(
-                f"not an {FORMAT} avatar (format: {data.get('format') if isinstance(data, dict) else None})"
-            )
+        """The avatar of an ``elicit-avatar/2`` (or ``/1``) state; a bad one is an :class:`AvatarError`."""
+        found = data.get("format") if isinstance(data, dict) else None
+        if found not in (FORMAT, LEGACY_FORMAT):
+            raise AvatarError(f"not an {FORMAT} avatar (format: {found!r})")
+        missing = [k for k in (*FIELDS, "tensors") if k not in data]
+        if missing:
+            raise AvatarError(f"an {found} avatar without the field(s) {missing}")
         renamed = {k: LEGACY_TENSORS.get(k, k) for k in data["tensors"]}
         t = {new: data["tensors"][old] for old, new in renamed.items() if new is not None}
-        avatar = cls(
-            data["body"],
-            data["reduced_joints"],
-            data["parents"],
-            t["canonical_bones"],
-            t["field.box"],
-            data["voxel_size"],
-            data["activation"],
-            data["occupancy_cell"],
-            data["weight_res"],
-            data["config"],
-        )
-        avatar.load_state_dict(t)
+        try:
+            avatar = cls(
+                data["body"],
+                data["reduced_joints"],
+                data["parents"],
+                t["canonical_bones"],
+                t["field.box"],
+                data["voxel_size"],
+                data["activation"],
+                data["occupancy_cell"],
+                data["weight_res"],
+                data["config"],
+            )
+            avatar.load_state_dict(t)
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            raise AvatarError(
+                f"an {found} avatar whose fields do not fit together ({type(exc).__name__}: {detail})"
+            ) from None
         return avatar

@@ -17,11 +17,12 @@ from scipy.spatial import cKDTree
 from .body import BodyModel, load_body
 from .cameras import Camera
 from .errors import ElicitError
-from .io import atomic_write
+from .io import write_tensors
 from .mesh_render import MeshAppearance, MeshRenderer
 from .subject import Subject
 
-FORMAT = "elicit-textured-body/1"
+FORMAT = "elicit-textured-body/2"  # a safetensors file, like elicit-avatar/2
+LEGACY_FORMAT = "elicit-textured-body/1"  # avatar.pt of earlier versions
 
 
 def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -96,17 +97,20 @@ class TexturedBody:
 
     def save(self, path: str | Path) -> Path:
         data = {"format": FORMAT, "body": self.body_spec, "vertex_colors": torch.as_tensor(self.vertex_colors)}
-        return atomic_write(path, lambda p: torch.save(data, p))
+        return write_tensors(path, data)
 
     @classmethod
     def from_state(cls, data: dict) -> TexturedBody:
-        if data.get("format") != FORMAT:
+        if data.get("format") not in (FORMAT, LEGACY_FORMAT):
             raise ElicitError(f"not an {FORMAT} file")
-        return cls(data["body"], data["vertex_colors"].numpy())
+        colors = data.get("vertex_colors")
+        if not isinstance(data.get("body"), dict) or not isinstance(colors, torch.Tensor) or colors.ndim != 2:
+            raise ElicitError(f"an {data['format']} file needs 'body' and (V, 3) 'vertex_colors'")
+        return cls(data["body"], colors.numpy())
 
 
 def fit_baseline(subject: Subject, cfg, run_dir: Path) -> dict:
-    """Fit the baseline to ``subject``, save it as ``run_dir/avatar.pt``; returns the run report (also run.json)."""
+    """Fit the baseline to ``subject``, save it in ``run_dir``; returns the run report (also run.json)."""
     import logging
     import resource
     import time
@@ -115,7 +119,9 @@ def fit_baseline(subject: Subject, cfg, run_dir: Path) -> dict:
     from .io import write_json
 
     t0 = time.perf_counter()
-    path = TexturedBody.fit(subject).save(run_dir / "avatar.pt")
+    from .avatar import AVATAR_FILE
+
+    path = TexturedBody.fit(subject).save(run_dir / AVATAR_FILE)
     logging.getLogger("elicit.fit").info("baseline explicit_texture: per-vertex colours from the input view")
     report = {
         "subject": str(subject.root),

@@ -6,13 +6,21 @@ import argparse
 import sys
 from pathlib import Path
 
+from .checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
 from .errors import ElicitError
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (exit code 2), like every other bad input."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _synth(args: argparse.Namespace) -> None:
     from .synth import synthesize
 
-    out = synthesize(args.seed, args.out, motion_name=args.motion, size=args.size, spp=args.spp)
+    out = synthesize(args.seed, args.out, motion_name=args.motion, size=args.size, spp=args.spp, force=args.force)
     print(f"wrote synthetic subject {out} (contact sheet: {out / 'contact_sheet.png'})")
 
 
@@ -23,7 +31,7 @@ def _fit(args: argparse.Namespace) -> None:
 
     cfg = make_config(args.preset, args.config, args.set)
     subject = load_subject(args.subject)
-    report = fit(subject, cfg, args.out, resume=args.resume)
+    report = fit(subject, cfg, args.out, resume=args.resume, force=args.force)
     enc = report["encoder"]["name"] if report["encoder"] else "none"
     print(
         f"avatar: {report['avatar']} (encoder: {enc}; perceptual: {report['perceptual']['name']}; "
@@ -68,7 +76,16 @@ def _eval(args: argparse.Namespace) -> None:
 def _prepare(args: argparse.Namespace) -> None:
     from .prepare import prepare
 
-    r = prepare(args.photo, args.out, args.mask, args.params, args.focal, args.motion)
+    r = prepare(
+        args.photo,
+        args.out,
+        args.mask,
+        args.params,
+        args.focal,
+        args.motion,
+        force=args.force,
+        max_megapixels=args.max_megapixels,
+    )
     kp = r.get("keypoint_error_px")
     kp_text = f", keypoint error {kp['median']:.1f} px median" if kp else ""
     print(
@@ -81,11 +98,11 @@ def _import(args: argparse.Namespace) -> None:
     from .importers import import_elicit_wild, import_zju
 
     if args.layout == "elicit-wild":
-        out = import_elicit_wild(args.source, args.out, args.motion, args.smpl)
+        out = import_elicit_wild(args.source, args.out, args.motion, args.smpl, args.force)
     else:
         if not args.frames:
             raise ElicitError("import zju needs --frames (the frame ids to import; the first is the input)")
-        out = import_zju(args.source, args.out, args.frames, args.input_camera, args.smpl)
+        out = import_zju(args.source, args.out, args.frames, args.input_camera, args.smpl, args.force)
     print(f"wrote subject {out}")
 
 
@@ -112,38 +129,40 @@ def _rigs(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="elicit", description="ELICIT: one-shot animatable avatars from a single photo")
+    p = Parser(prog="elicit", description="ELICIT: one-shot animatable avatars from a single photo")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synth", help="write a synthetic clothed subject (elicit-subject/1)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--motion", default="walk_in_place", help="built-in target motion")
-    s.add_argument("--size", type=int, default=512, help="image size in pixels")
-    s.add_argument("--spp", type=int, default=32, help="path-tracing samples per pixel")
+    s.add_argument("--size", type=positive_int, default=512, help="image size in pixels")
+    s.add_argument("--spp", type=positive_int, default=32, help="path-tracing samples per pixel")
+    s.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     s.set_defaults(func=_synth)
 
     f = sub.add_parser("fit", help="fit an avatar to a subject (two-stage ELICIT optimisation)")
     f.add_argument("subject", type=Path, help="an elicit-subject/1 folder")
-    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, previews, avatar.pt, run.json)")
+    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, previews, avatar, run.json)")
     f.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
     f.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
     f.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key (or ablation=NAME)"
     )
     f.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    f.add_argument("--force", action="store_true", help="replace an earlier fit in the run folder")
     f.set_defaults(func=_fit)
 
     v = sub.add_parser("render", help="free-view / animation video of a fitted avatar, with a contact sheet")
-    v.add_argument("run", type=Path, help="a run folder (or its avatar.pt)")
+    v.add_argument("run", type=Path, help="a run folder (or its avatar file)")
     v.add_argument(
         "--motion", default=None, help="built-in motion name or motion .npz (default: the subject's, or rest)"
     )
     v.add_argument("--cameras", default="orbit", help="orbit, ring, input, a rig .xml, or a subject folder")
     v.add_argument("--out", type=Path, required=True, help="OUT.mp4, OUT.gif or a folder for PNG frames")
-    v.add_argument("--size", type=int, default=256, help="image size in pixels")
-    v.add_argument("--samples", type=int, default=64, help="samples per ray")
-    v.add_argument("--fps", type=float, default=30.0)
+    v.add_argument("--size", type=positive_int, default=256, help="image size in pixels")
+    v.add_argument("--samples", type=positive_int, default=64, help="samples per ray")
+    v.add_argument("--fps", type=positive_float, default=30.0)
     v.set_defaults(func=_render)
 
     d = sub.add_parser("demo", help="synthesise the default subject, fit it (cpu-fast) and render videos")
@@ -155,17 +174,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run", type=Path)
     e.add_argument("subject", type=Path)
     e.add_argument("--out", type=Path, required=True, help="metrics.json (grids are written beside it)")
-    e.add_argument("--scale", type=float, default=0.5, help="evaluation image scale")
-    e.add_argument("--max-views", type=int, default=None, help="evaluate at most this many views per split")
+    e.add_argument("--scale", type=unit_fraction, default=0.5, help="evaluation image scale, in (0, 1]")
+    e.add_argument("--max-views", type=positive_int, default=None, help="evaluate at most this many views per split")
     e.set_defaults(func=_eval)
 
     q = sub.add_parser("prepare", help="turn one photo into a subject: mask, camera and an Anny body fit")
     q.add_argument("photo", type=Path)
     q.add_argument("--out", type=Path, required=True)
-    q.add_argument("--mask", type=Path, default=None, help="8-bit person mask (> 127 is the person)")
+    q.add_argument("--mask", type=Path, default=None, help="person mask, 1-, 8- or 16-bit (above half is the person)")
     q.add_argument("--params", type=Path, default=None, help="ELICIT/CLIFF gt_params.npz (focal_l, pred_joints)")
-    q.add_argument("--focal", type=float, default=None, help="focal length in pixels")
+    q.add_argument("--focal", type=positive_float, default=None, help="focal length in pixels")
     q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
+    q.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    q.add_argument(
+        "--max-megapixels", type=positive_float, default=MAX_MEGAPIXELS, help="refuse larger photos (default 40)"
+    )
     q.set_defaults(func=_prepare)
 
     i = sub.add_parser("import", help="import ELICIT's in-the-wild layout or ZJU-MoCap as a subject")
@@ -176,17 +199,18 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--smpl", default=None, help="SMPL model file or folder (else ELICIT_SMPL_DIR)")
     i.add_argument("--frames", type=int, nargs="*", default=None, help="zju: frame ids")
     i.add_argument("--input-camera", type=int, default=0, help="zju: index of the input camera")
+    i.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     i.set_defaults(func=_import)
 
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])
     r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--n", type=int, default=23, help="number of cameras (orbit: frames)")
-    r.add_argument("--radius", type=float, default=3.0)
+    r.add_argument("--n", type=positive_int, default=23, help="number of cameras (orbit: frames)")
+    r.add_argument("--radius", type=positive_float, default=3.0)
     r.add_argument("--elevation", type=float, default=0.0, help="degrees")
     r.add_argument("--look-at", type=float, nargs=3, default=(0.0, 0.0, 0.0))
-    r.add_argument("--focal", type=float, default=650.0, help="pixels")
-    r.add_argument("--size", type=int, default=512)
+    r.add_argument("--focal", type=positive_float, default=650.0, help="pixels")
+    r.add_argument("--size", type=positive_int, default=512)
     r.set_defaults(func=_rigs)
     return p
 
@@ -197,6 +221,10 @@ def main(argv: list[str] | None = None) -> int:
         args.func(args)
     except ElicitError as exc:
         print(f"elicit {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a read-only folder, a full disk: nothing half-written is left in place
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"elicit {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"elicit {args.command}: interrupted", file=sys.stderr)

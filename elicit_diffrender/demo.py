@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from .animate import contact_sheet, load_avatar, render_sequence, write_video
+from .avatar import AVATAR_FILE
 from .config import make_config
 from .io import write_json
 from .motions import builtin_motion
@@ -35,13 +36,13 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     try:
         subject = load_subject(subject_dir)
     except SubjectError:
-        synthesize(DEMO_SEED, subject_dir, motion_name=DEMO_MOTION)
+        synthesize(DEMO_SEED, subject_dir, motion_name=DEMO_MOTION, force=True)
         subject = load_subject(subject_dir)
     times["synth"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     run_dir = out / "run"
-    if not (run_dir / "avatar.pt").is_file():
+    if not (run_dir / AVATAR_FILE).is_file():
         cfg = make_config("cpu-fast", None, overrides)
         fit(subject, cfg, run_dir, resume=(run_dir / CHECKPOINT).is_file())
     times["fit"] = time.perf_counter() - t1

@@ -17,9 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera
+from .checks import numeric, read_image, read_mask
 from .errors import ElicitError
+from .io import folder_in_place
 from .motions import Motion, builtin_motion, read_zju_params
-from .subject import SubjectError, read_png, write_subject
+from .safe_load import load_npy, load_npz
+from .subject import write_subject
 
 
 class SourceImportError(ElicitError):
@@ -33,23 +36,25 @@ def _need(path: Path, what: str) -> Path:
 
 
 def _load_npz(path: Path) -> dict:
-    try:
-        with np.load(_need(path, "parameter file"), allow_pickle=True) as data:
-            return {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise SourceImportError(f"{path}: not a readable .npz file ({exc})") from exc
+    return load_npz(_need(path, "parameter file"), SourceImportError)
 
 
 def _field(params: dict, key: str, shape: tuple, path: Path) -> np.ndarray:
+    """A numeric field of ``size(shape)`` numbers (any layout, e.g. CLIFF's (1, 72) pose), reshaped."""
     if key not in params:
         raise SourceImportError(f"{path}: missing field '{key}'")
-    arr = np.asarray(params[key], dtype=np.float64)
+    arr = numeric(params[key], f"{path} field '{key}'", error=SourceImportError)
     if arr.size != int(np.prod(shape)):
         raise SourceImportError(f"{path}: field '{key}' must have shape {shape}, got {arr.shape}")
-    arr = arr.reshape(shape)
-    if not np.isfinite(arr).all():
-        raise SourceImportError(f"{path}: field '{key}' contains NaN or infinite values")
-    return arr
+    return arr.reshape(shape)
+
+
+def smpl_joints(params: dict, path: Path, error: type[ElicitError] = SourceImportError) -> np.ndarray:
+    """CLIFF's ``pred_joints``: camera-space SMPL joints, (N >= 24, 3); the first 24 are returned."""
+    joints = numeric(params["pred_joints"], f"{path} field 'pred_joints'", error=error)
+    if joints.size % 3 or joints.size < 72:
+        raise error(f"{path}: field 'pred_joints' must hold at least 24 3D joints, got {joints.shape}")
+    return joints.reshape(-1, 3)[:24]
 
 
 def upright_frame(root_rotation: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -91,19 +96,27 @@ def smpl_available(model_path: str | None) -> bool:
 
 
 def import_elicit_wild(
-    folder: str | Path, out: str | Path, motion: str = "walk_in_place", smpl_path: str | None = None
+    folder: str | Path,
+    out: str | Path,
+    motion: str = "walk_in_place",
+    smpl_path: str | None = None,
+    force: bool = False,
 ) -> Path:
-    """Import ELICIT's ``gt_image.png`` + ``gt_mask.png`` + ``gt_params.npz`` as a subject."""
-    folder = Path(folder)
+    """Import ELICIT's ``gt_image.png`` + ``gt_mask.png`` + ``gt_params.npz`` as a subject, written as a whole
+    (a non-empty ``out`` only with ``force``)."""
+    with folder_in_place(out, force) as tmp:
+        _import_elicit_wild(Path(folder), tmp, motion, smpl_path)
+    return Path(out)
+
+
+def _import_elicit_wild(folder: Path, out: Path, motion: str, smpl_path: str | None) -> None:
     if not folder.is_dir():
         raise SourceImportError(f"{folder}: folder not found")
-    img = read_png(_need(folder / "gt_image.png", "image"), None, "image")
-    h, w = img.shape[:2]
-    try:
-        mask = read_png(_need(folder / "gt_mask.png", "mask"), (h, w), "mask")
-    except SubjectError as exc:
-        raise SourceImportError(str(exc)) from None
-    mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+    rgb, _ = read_image(folder / "gt_image.png", "image", error=SourceImportError)
+    h, w = rgb.shape[:2]
+    mask = read_mask(folder / "gt_mask.png", "mask", (h, w), error=SourceImportError)
+    if not mask.any():
+        raise SourceImportError(f"{folder / 'gt_mask.png'}: the mask is empty")
     params_path = folder / "gt_params.npz"
     params = _load_npz(params_path)
     focal = float(_field(params, "focal_l", (1,), params_path)[0])
@@ -128,8 +141,7 @@ def import_elicit_wild(
     elif "pred_joints" in params:
         from .body.fitting import fit_anny_to_smpl_joints
 
-        joints = _field(params, "pred_joints", (params["pred_joints"].size // 3, 3), params_path)
-        fit = fit_anny_to_smpl_joints(joints[:24])
+        fit = fit_anny_to_smpl_joints(smpl_joints(params, params_path))
         body = fit["body"]
         spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
         in_pose, in_orient, in_transl = fit["pose"], fit["global_orient"], fit["transl"]
@@ -141,7 +153,6 @@ def import_elicit_wild(
             f"(set ELICIT_SMPL_DIR or pass smpl_path); without either the body cannot be built"
         )
     motion_obj = motion_with_input_frame(body, in_pose, in_orient, in_transl, motion, up)
-    rgb = img[..., :3].astype(np.float32) / 255.0
     rgb = rgb * mask[..., None]
     write_subject(
         out,
@@ -153,44 +164,82 @@ def import_elicit_wild(
         {("input", 0): (rgb, mask)},
         {"import": {"layout": "elicit-wild", **info}},
     )
-    return Path(out)
+
+
+def zju_annotations(annots, path: Path, frames: list[int]) -> tuple[list[tuple], list[list[str]]]:
+    """ZJU-MoCap's ``annots.npy``: per camera (K, R, T in metres), and per frame the image path of each camera."""
+    if not isinstance(annots, dict) or not isinstance(annots.get("cams"), dict) or "ims" not in annots:
+        raise SourceImportError(f"{path}: not a ZJU-MoCap annots file (expected a dict with 'cams' and 'ims')")
+    raw = annots["cams"]
+    for key in ("K", "R", "T"):
+        if not isinstance(raw.get(key), (list, tuple, np.ndarray)) or len(raw[key]) == 0:
+            raise SourceImportError(f"{path}: field 'cams.{key}' must be a list with one entry per camera")
+    n = len(raw["K"])
+    if len(raw["R"]) != n or len(raw["T"]) != n:
+        raise SourceImportError(f"{path}: fields 'cams.K', 'cams.R' and 'cams.T' must have the same length")
+    cams = []
+    for c in range(n):
+        where = f"{path} camera {c}"
+        K = numeric(raw["K"][c], f"{where} field 'K'", (3, 3), SourceImportError)
+        R = numeric(raw["R"][c], f"{where} field 'R'", (3, 3), SourceImportError)
+        T = numeric(raw["T"][c], f"{where} field 'T'", error=SourceImportError).ravel()
+        if T.shape != (3,):
+            raise SourceImportError(f"{where} field 'T': expected 3 numbers, got {T.shape}")
+        cams.append((K, R, T / 1000.0))  # millimetres
+    ims = annots["ims"]
+    out = []
+    for f in range(len(ims) if isinstance(ims, (list, tuple, np.ndarray)) else 0):
+        entry = ims[f].get("ims") if isinstance(ims[f], dict) else None
+        listed = isinstance(entry, (list, tuple, np.ndarray)) and len(entry) == n
+        if not listed or not all(isinstance(p, str) for p in entry):
+            raise SourceImportError(f"{path}: field 'ims[{f}].ims' must list {n} image paths, one per camera")
+        out.append(list(entry))
+    bad = [f for f in frames if not 0 <= f < len(out)]
+    if bad:
+        raise SourceImportError(f"{path}: frames {bad[:5]} are not in 'ims' (0..{len(out) - 1})")
+    return cams, out
 
 
 def import_zju(
-    folder: str | Path, out: str | Path, frames: list[int], input_camera: int = 0, smpl_path: str | None = None
+    folder: str | Path,
+    out: str | Path,
+    frames: list[int],
+    input_camera: int = 0,
+    smpl_path: str | None = None,
+    force: bool = False,
 ) -> Path:
-    """Import ZJU-MoCap frames (all cameras) as a subject with an SMPL body (needs model files)."""
-    folder = Path(folder)
+    """Import ZJU-MoCap frames (all cameras) as a subject with an SMPL body (needs model files), written as a
+    whole (a non-empty ``out`` only with ``force``)."""
+    with folder_in_place(out, force) as tmp:
+        _import_zju(Path(folder), tmp, frames, input_camera, smpl_path)
+    return Path(out)
+
+
+def _import_zju(folder: Path, out: Path, frames: list[int], input_camera: int, smpl_path: str | None) -> None:
     annots_path = _need(folder / "annots.npy", "annots.npy")
-    try:
-        annots = np.load(annots_path, allow_pickle=True).item()
-        cams_raw, ims = annots["cams"], annots["ims"]
-    except (ValueError, KeyError, AttributeError) as exc:
-        raise SourceImportError(f"{annots_path}: not a ZJU-MoCap annots file ({exc})") from exc
-    n_cams = len(cams_raw["K"])
-    if not 0 <= input_camera < n_cams:
-        raise SourceImportError(f"{annots_path}: input camera {input_camera} out of range (0..{n_cams - 1})")
+    cams, ims = zju_annotations(load_npy(annots_path, SourceImportError), annots_path, frames)
+    if not 0 <= input_camera < len(cams):
+        raise SourceImportError(f"{annots_path}: input camera {input_camera} out of range (0..{len(cams) - 1})")
     params_dir = folder / "new_params" if (folder / "new_params").is_dir() else folder / "params"
-    first = np.load(_need(params_dir / f"{frames[0]}.npy", "SMPL parameters"), allow_pickle=True).item()
-    betas = np.asarray(first.get("shapes", np.zeros(10))).ravel()[:10]
+    first_path = _need(params_dir / f"{frames[0]}.npy", "SMPL parameters")
+    first = load_npy(first_path, SourceImportError)
+    shapes = first.get("shapes", np.zeros(10)) if isinstance(first, dict) else np.zeros(10)
+    betas = numeric(shapes, f"{first_path} field 'shapes'", error=SourceImportError).ravel()[:10]
     from .body.smpl_model import SmplBody
 
     body = SmplBody(betas, "neutral", "smpl", smpl_path)
     motion = read_zju_params(params_dir, body, frames)
     cameras, views = {}, {}
     mask_dir = folder / "mask_cihp" if (folder / "mask_cihp").is_dir() else folder / "mask"
-    for c in range(n_cams):
+    for c, (K, R, T) in enumerate(cams):
         name = f"cam{c:02d}"
-        first_img = read_png(_need(folder / ims[frames[0]]["ims"][c], "image"), None, "image")
-        K = np.asarray(cams_raw["K"][c], dtype=np.float64)
-        T = np.asarray(cams_raw["T"][c], dtype=np.float64).ravel() / 1000.0
-        cameras[name] = Camera(K, np.asarray(cams_raw["R"][c]), T, first_img.shape[1], first_img.shape[0], name)
+        first_img, _ = read_image(folder / ims[frames[0]][c], "image", error=SourceImportError)
+        cameras[name] = Camera(K, R, T, first_img.shape[1], first_img.shape[0], name)
         for f in frames:
-            rel = Path(ims[f]["ims"][c])
-            img = read_png(_need(folder / rel, "image"), None, "image")
-            m = read_png(_need(mask_dir / rel.with_suffix(".png"), "mask"), img.shape[:2], "mask")
-            m = (m[..., 0] if m.ndim == 3 else m) > 0
-            views[(name, f)] = (img[..., :3].astype(np.float32) / 255.0 * m[..., None], m)
+            rel = Path(ims[f][c])
+            img, _ = read_image(folder / rel, "image", first_img.shape[:2], error=SourceImportError)
+            m = read_mask(mask_dir / rel.with_suffix(".png"), "mask", img.shape[:2], error=SourceImportError)
+            views[(name, f)] = (img * m[..., None], m)
     spec = {"model": "smpl", "betas": betas.tolist(), "gender": "neutral"}
     if smpl_path:
         spec["model_path"] = str(smpl_path)
@@ -204,4 +253,3 @@ def import_zju(
         views,
         {"import": {"layout": "zju-mocap", "source": str(folder)}},
     )
-    return Path(out)

@@ -1,15 +1,20 @@
-"""Atomic file writes: every file is written beside its target and renamed into place."""
+"""Atomic writes: every file is written beside its target and renamed into place, whole folders too;
+and safetensors files of tensors with a JSON header, which cannot carry code."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .errors import ElicitError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -30,6 +35,40 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def is_empty_folder(path: Path) -> bool:
+    return not path.exists() or (path.is_dir() and not any(path.iterdir()))
+
+
+@contextmanager
+def folder_in_place(path: str | Path, force: bool = False) -> Iterator[Path]:
+    """Write a whole folder: fill the temporary sibling this yields; when the block ends without an
+    error, it replaces ``path``. On any error (a full disk, a bad input found late) the temporary folder
+    is removed and ``path`` is left as it was. A non-empty ``path`` is replaced only with ``force``.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ElicitError(f"{path}: exists and is not a folder")
+    if not force and not is_empty_folder(path):
+        raise ElicitError(f"{path}: folder exists and is not empty; pass --force to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in path.parent.glob(f".{path.name}.*.partial"):  # left by a killed earlier write
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_UMASK)
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def write_text(path: str | Path, text: str) -> Path:

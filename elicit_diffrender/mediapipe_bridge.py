@@ -31,7 +31,8 @@ class MediaPipeUnavailable(ElicitError):
 @dataclass
 class PoseDetection:
     landmarks: np.ndarray | None  # (33, 3) x, y (pixels), visibility; None when no person was found
-    segmentation: np.ndarray  # (H, W) person probability
+    segmentation: np.ndarray  # (H, W) probability of the person Pose tracks
+    people: np.ndarray  # (H, W) probability of any person (selfie segmentation)
 
 
 def mediapipe_python() -> str | None:
@@ -64,6 +65,6 @@ def detect_pose(image_path: str | Path) -> PoseDetection:
         if done.returncode != 0 or not out.is_file():
             tail = done.stderr.strip().splitlines()[-1:] or ["(no output)"]
             raise MediaPipeUnavailable(f"MediaPipe failed on {image_path} with {python}: {tail[0]}; {INSTALL_HINT}")
-        data = np.load(out)
-        lm = data["landmarks"]
-        return PoseDetection(lm if lm.shape[0] == 33 else None, data["segmentation"])
+        with np.load(out, allow_pickle=False) as data:
+            lm = data["landmarks"]
+            return PoseDetection(lm if lm.shape[0] == 33 else None, data["segmentation"], data["people"])

@@ -2,7 +2,8 @@
 
     python mediapipe_runner.py IMAGE OUT.npz
 
-Writes ``landmarks`` (33, 3): x, y in pixels and visibility, and ``segmentation`` (H, W) in [0, 1].
+Writes ``landmarks`` (33, 3): x, y in pixels and visibility, ``segmentation`` (H, W) in [0, 1] (the
+one person Pose tracks) and ``people`` (H, W) in [0, 1] (selfie segmentation: everyone in the photo).
 Kept free of this package's imports: MediaPipe 0.10.21 pins numpy<2 and lives in its own environment.
 The legacy ``solutions`` API with model_complexity=1 uses models bundled in the wheel (no download).
 """
@@ -17,13 +18,16 @@ from PIL import Image
 def main(image_path: str, out_path: str) -> int:
     image = np.asarray(Image.open(image_path).convert("RGB"))
     h, w = image.shape[:2]
+    with mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=0) as selfie:
+        people = np.asarray(selfie.process(image).segmentation_mask, dtype=np.float32)
     with mp.solutions.pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True) as pose:
         result = pose.process(image)
     if result.pose_landmarks is None:
-        np.savez(out_path, landmarks=np.zeros((0, 3)), segmentation=np.zeros((h, w), np.float32))
+        np.savez(out_path, landmarks=np.zeros((0, 3)), segmentation=np.zeros((h, w), np.float32), people=people)
         return 0
     lm = np.array([[p.x * w, p.y * h, p.visibility] for p in result.pose_landmarks.landmark], dtype=np.float64)
-    np.savez(out_path, landmarks=lm, segmentation=np.asarray(result.segmentation_mask, dtype=np.float32))
+    segmentation = np.asarray(result.segmentation_mask, dtype=np.float32)
+    np.savez(out_path, landmarks=lm, segmentation=segmentation, people=people)
     return 0
 
 

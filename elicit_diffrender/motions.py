@@ -16,10 +16,13 @@ import numpy as np
 import torch
 
 from .body import BodyModel
+from .checks import numeric
 from .errors import ElicitError
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from .io import atomic_write
+from .safe_load import load_npy, load_npz
 
+MAX_TRANSLATION = 1000.0  # metres: a body farther from the origin is a unit or convention mistake
 BUILTIN_MOTIONS = ("walk_in_place", "turn_around", "wave", "squat", "rest", "anny_walk")
 
 
@@ -83,32 +86,39 @@ def load_motion_npz(path: str | Path, n_joints: int | None = None) -> Motion:
     path = Path(path)
     if not path.is_file():
         raise MotionError(f"{path}: motion file not found")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:  # numpy raises several types for corrupt files
-        raise MotionError(f"{path}: not a readable .npz file ({exc})") from exc
+    return motion_from_arrays(load_npz(path, MotionError), path, n_joints)
+
+
+def motion_from_arrays(data: dict, path: Path, n_joints: int | None = None) -> Motion:
+    """A motion from ``motion.npz``'s arrays: (F, J, 3) pose, (F, 3) global_orient and transl, optional
+    (F,) frame_ids and fps; every problem names the file and the field."""
     for key in ("pose", "global_orient", "transl"):
         if key not in data:
             raise MotionError(f"{path}: missing field '{key}'")
-    pose = data["pose"]
-    if pose.ndim != 3 or pose.shape[2] != 3:
-        raise MotionError(f"{path}: field 'pose' must be (F, J, 3), got {pose.shape}")
+    pose = numeric(data["pose"], f"{path} field 'pose'", (-1, -1, 3), MotionError)
     n = pose.shape[0]
     if n == 0:
         raise MotionError(f"{path}: field 'pose' has no frames")
     if n_joints is not None and pose.shape[1] != n_joints:
         raise MotionError(f"{path}: field 'pose' has {pose.shape[1]} joints, the body model has {n_joints}")
-    for key in ("global_orient", "transl"):
-        if data[key].shape != (n, 3):
-            raise MotionError(f"{path}: field '{key}' must be ({n}, 3), got {data[key].shape}")
-    for key in ("pose", "global_orient", "transl"):
-        if not np.isfinite(data[key]).all():
-            raise MotionError(f"{path}: field '{key}' contains NaN or infinite values")
-    frame_ids = data["frame_ids"] if "frame_ids" in data else None
-    if frame_ids is not None and frame_ids.shape != (n,):
-        raise MotionError(f"{path}: field 'frame_ids' must be ({n},), got {frame_ids.shape}")
-    fps = float(data["fps"]) if "fps" in data else 30.0
-    return Motion(pose, data["global_orient"], data["transl"], frame_ids, fps, path.stem)
+    orient = numeric(data["global_orient"], f"{path} field 'global_orient'", (n, 3), MotionError)
+    transl = numeric(data["transl"], f"{path} field 'transl'", (n, 3), MotionError)
+    if np.abs(transl).max() > MAX_TRANSLATION:
+        raise MotionError(
+            f"{path}: field 'transl' reaches {np.abs(transl).max():.3g} m; translations are metres (at most "
+            f"{MAX_TRANSLATION:g})"
+        )
+    frame_ids = None
+    if "frame_ids" in data:
+        frame_ids = numeric(data["frame_ids"], f"{path} field 'frame_ids'", (n,), MotionError)
+        if (frame_ids != np.round(frame_ids)).any() or len(set(frame_ids.tolist())) != n:
+            raise MotionError(f"{path}: field 'frame_ids' must be {n} distinct integers")
+    fps = 30.0
+    if "fps" in data:
+        fps = float(numeric(data["fps"], f"{path} field 'fps'", (), MotionError))
+        if fps <= 0:
+            raise MotionError(f"{path}: field 'fps' must be positive, got {fps}")
+    return Motion(pose, orient, transl, frame_ids, fps, path.stem)
 
 
 # ---- built-in procedural motions ------------------------------------------------------------------
@@ -222,25 +232,36 @@ Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 def read_amass(path: str | Path, body: BodyModel, step: int = 1) -> Motion:
     """An AMASS ``.npz`` (SMPL-H/SMPL-X poses, z-up world) as a motion of an SMPL-family body."""
     path = Path(path)
+    return _amass_motion(load_npz(path, MotionError), path, body, step)
+
+
+def _amass_motion(data: dict, path: Path, body: BodyModel, step: int = 1) -> Motion:
     if body.name not in ("smpl", "smplx"):
         raise MotionError(f"{path}: AMASS poses are SMPL joints; the subject's body model is {body.name!r}")
-    data = np.load(path, allow_pickle=True)
     for key in ("poses", "trans"):
         if key not in data:
             raise MotionError(f"{path}: missing field '{key}' (not an AMASS file?)")
-    poses, trans = data["poses"][::step], data["trans"][::step]
-    n_body = body.n_joints
-    pose = np.zeros((poses.shape[0], n_body, 3))
-    pose[:, : min(n_body, 22)] = poses[:, : 3 * min(n_body, 22)].reshape(-1, min(n_body, 22), 3)
-    fps = float(data["mocap_framerate"]) / step if "mocap_framerate" in data else 30.0
+    poses = numeric(data["poses"], f"{path} field 'poses'", (-1, -1), MotionError)[::step]
+    trans = numeric(data["trans"], f"{path} field 'trans'", (-1, 3), MotionError)[::step]
+    n_body = min(body.n_joints, 22)
+    if poses.shape[1] < 3 * n_body or poses.shape[0] != trans.shape[0] or poses.shape[0] == 0:
+        raise MotionError(f"{path}: fields 'poses' {poses.shape} and 'trans' {trans.shape} do not match an AMASS clip")
+    pose = np.zeros((poses.shape[0], body.n_joints, 3))
+    pose[:, :n_body] = poses[:, : 3 * n_body].reshape(-1, n_body, 3)
+    fps = 30.0
+    if "mocap_framerate" in data:
+        fps = float(numeric(data["mocap_framerate"], f"{path} field 'mocap_framerate'", (), MotionError)) / step
     motion = Motion(pose, np.zeros((pose.shape[0], 3)), trans, None, fps, path.stem)
     return motion.placed(Z_UP_TO_Y_UP, np.zeros(3))
 
 
 def read_zju_params(folder: str | Path, body: BodyModel, frames: list[int] | None = None) -> Motion:
-    """ZJU-MoCap / EasyMocap ``new_params/<frame>.npy`` files (``poses``, ``Rh``, ``Th``)."""
+    """ZJU-MoCap / EasyMocap ``new_params/<frame>.npy`` files (``poses``, ``Rh``, ``Th``) of an SMPL body."""
     folder = Path(folder)
-    files = sorted(folder.glob("*.npy"), key=lambda p: int(p.stem)) if folder.is_dir() else []
+    if body.name not in ("smpl", "smplx"):
+        raise MotionError(f"{folder}: ZJU/EasyMocap poses are SMPL joints; the body model is {body.name!r}")
+    files = [p for p in folder.glob("*.npy") if p.stem.isdigit()] if folder.is_dir() else []
+    files.sort(key=lambda p: int(p.stem))
     if not files:
         raise MotionError(f"{folder}: no <frame>.npy parameter files")
     if frames is not None:
@@ -251,15 +272,22 @@ def read_zju_params(folder: str | Path, body: BodyModel, frames: list[int] | Non
         files = [by_id[f] for f in frames]
     pose, orient, transl, ids = [], [], [], []
     for f in files:
-        d = np.load(f, allow_pickle=True).item()
+        d = load_npy(f, MotionError)
+        if not isinstance(d, dict):
+            raise MotionError(f"{f}: expected a dict of 'poses', 'Rh' and 'Th', got {type(d).__name__}")
         for key in ("poses", "Rh", "Th"):
             if key not in d:
                 raise MotionError(f"{f}: missing field '{key}'")
-        p = np.asarray(d["poses"], dtype=np.float64).reshape(-1, 3)[: body.n_joints]
+        p = numeric(d["poses"], f"{f} field 'poses'", error=MotionError).reshape(-1, 3)
+        if p.shape[0] < body.n_joints:
+            raise MotionError(f"{f}: field 'poses' has {p.shape[0]} joints, the body model needs {body.n_joints}")
+        p = p[: body.n_joints].copy()
         p[0] = 0.0  # EasyMocap keeps the root rotation in Rh
         pose.append(p)
-        orient.append(np.asarray(d["Rh"]).reshape(3))
-        transl.append(np.asarray(d["Th"]).reshape(3))
+        orient.append(numeric(d["Rh"], f"{f} field 'Rh'", error=MotionError).reshape(-1)[:3])
+        transl.append(numeric(d["Th"], f"{f} field 'Th'", error=MotionError).reshape(-1)[:3])
+        if orient[-1].shape != (3,) or transl[-1].shape != (3,):
+            raise MotionError(f"{f}: fields 'Rh' and 'Th' must hold 3 numbers each")
         ids.append(int(f.stem))
     return Motion(np.stack(pose), np.stack(orient), np.stack(transl), np.array(ids), 30.0, folder.parent.name)
 
@@ -273,9 +301,8 @@ def load_motion(spec: str | Path, body: BodyModel, n_frames: int | None = None) 
     if path.is_dir():
         return read_zju_params(path, body)
     if path.suffix == ".npz" and path.is_file():
-        with np.load(path, allow_pickle=True) as data:
-            is_amass = "poses" in data and "trans" in data
-        if is_amass:
-            return read_amass(path, body)
-        return load_motion_npz(path, body.n_joints)
+        data = load_npz(path, MotionError)
+        if "poses" in data and "trans" in data:
+            return _amass_motion(data, path, body)
+        return motion_from_arrays(data, path, body.n_joints)
     raise MotionError(f"{spec_str!r} is neither a built-in motion {BUILTIN_MOTIONS} nor an existing motion file")

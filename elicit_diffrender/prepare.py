@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 
@@ -20,10 +21,12 @@ from scipy import ndimage
 
 from .body.fitting import FIT_STEPS, SilhouetteFactory, fit_anny_to_image
 from .cameras import Camera
+from .checks import MAX_MEGAPIXELS, numeric, read_image, read_mask
 from .errors import ElicitError
-from .io import write_image, write_json
-from .mediapipe_bridge import MediaPipeUnavailable, detect_pose
-from .subject import read_png, write_subject
+from .io import folder_in_place, write_image, write_json
+from .mediapipe_bridge import MediaPipeUnavailable, PoseDetection, detect_pose
+from .safe_load import load_npz
+from .subject import write_subject
 
 RENDER_SIZE = 160  # longer image side of the body fit's differentiable silhouette, pixels
 
@@ -91,6 +94,58 @@ def mitsuba_silhouette(camera: Camera, size: int) -> SilhouetteFactory:
     return lambda faces, n_vertices: DifferentiableSilhouette(faces, n_vertices, small)
 
 
+def read_params(path: Path) -> dict:
+    """``--params``: CLIFF's ``focal_l`` (positive) and ``pred_joints`` (camera-space SMPL joints), checked."""
+    from .importers import smpl_joints
+
+    if not path.is_file():
+        raise PrepareError(f"{path}: parameter file not found")
+    data = load_npz(path, PrepareError)
+    params = {}
+    if "focal_l" in data:
+        focal = numeric(data["focal_l"], f"{path} field 'focal_l'", error=PrepareError).ravel()
+        if focal.size != 1 or focal[0] <= 0:
+            raise PrepareError(f"{path}: field 'focal_l' must be one positive number, got {focal.tolist()}")
+        params["focal_l"] = float(focal[0])
+    if "pred_joints" in data:
+        params["pred_joints"] = smpl_joints(data, path, PrepareError)
+    return params
+
+
+def person_mask(
+    photo: Path, rgb: np.ndarray, alpha: np.ndarray | None, mask_path: Path | None
+) -> tuple[np.ndarray, PoseDetection | None, str, Exception | None]:
+    """The person's mask, MediaPipe's detection (None when MediaPipe is missing) and where the mask came from.
+
+    With a mask (``--mask`` or the alpha channel) the keypoints are detected on the photo composited over
+    neutral grey outside it, so a dark or busy background cannot hide the person; without one, the mask is
+    MediaPipe's, and a photo of several people stops with a message.
+    """
+    h, w = rgb.shape[:2]
+    mask, source = None, ""
+    if mask_path is not None:
+        mask, source = read_mask(mask_path, "mask", (h, w), error=PrepareError), f"file {mask_path}"
+    elif alpha is not None and alpha.min() < 1.0:
+        mask, source = alpha > 0.5, "alpha channel"
+    detection, missing = None, None
+    try:
+        if mask is None:
+            detection = detect_pose(photo)
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                grey = write_image(Path(tmp) / "person.png", np.where(mask[..., None], rgb, 0.5))
+                detection = detect_pose(grey)
+    except MediaPipeUnavailable as exc:
+        missing = exc
+    if mask is None:
+        if detection is None:
+            raise PrepareError(f"{photo}: no --mask and no alpha channel, and {missing}")
+        check_single_person(detection.people > 0.5, photo)
+        check_single_person(detection.segmentation > 0.5, photo)
+        mask, source = largest_component(detection.segmentation > 0.5), "MediaPipe pose segmentation"
+    return mask, detection, source, missing
+
+
 def prepare(
     photo: str | Path,
     out: str | Path,
@@ -99,101 +154,85 @@ def prepare(
     focal: float | None = None,
     motion: str = "walk_in_place",
     steps: int | None = None,
+    force: bool = False,
+    max_megapixels: float = MAX_MEGAPIXELS,
 ) -> dict:
-    """Build a subject from one photo; returns the fit report (also ``fit_report.json``). ``steps``
-    overrides the body fit's ``FIT_STEPS``."""
+    """Build a subject from one photo, written as a whole (a non-empty ``out`` only with ``force``);
+    returns the fit report (also ``fit_report.json``). ``steps`` overrides the body fit's ``FIT_STEPS``."""
     from .importers import motion_with_input_frame
 
     t0 = time.perf_counter()
     photo, out = Path(photo), Path(out)
-    image = read_png(photo, None, "photo") if photo.is_file() else None
-    if image is None:
-        raise PrepareError(f"{photo}: photo not found")
-    h, w = image.shape[:2]
-    rgb = (image[..., :3] if image.ndim == 3 else np.repeat(image[..., None], 3, 2)).astype(np.float32) / 255.0
-    sources: dict[str, str] = {}
-    detection = None
-    try:
-        detection = detect_pose(photo)
-    except MediaPipeUnavailable as exc:
-        missing_exc = exc
-    # Mask.
-    if mask_path is not None:
-        m = read_png(Path(mask_path), (h, w), "mask")
-        m = m[..., 0] if m.ndim == 3 else m
-        mask = m > 0 if m.max() <= 1 else m > 127  # 1-bit masks read as 0/1
-        sources["mask"] = f"file {mask_path}"
-    elif image.ndim == 3 and image.shape[2] == 4 and image[..., 3].min() < 255:
-        mask = image[..., 3] > 127
-        sources["mask"] = "alpha channel"
-    elif detection is not None:
-        check_single_person(detection.segmentation > 0.5, photo)
-        mask = largest_component(detection.segmentation > 0.5)
-        sources["mask"] = "MediaPipe pose segmentation"
-    else:
-        raise PrepareError(f"{photo}: no --mask and no alpha channel, and {missing_exc}")
-    check_single_person(mask, photo)
-    landmarks = detection.landmarks if detection is not None else None
-    check_not_cut_off(mask, landmarks, photo)
-    # Camera.
-    params = dict(np.load(params_path, allow_pickle=True)) if params_path is not None else {}
-    if focal is not None:
-        sources["focal"] = "--focal"
-    elif "focal_l" in params:
-        focal = float(np.ravel(params["focal_l"])[0])
-        sources["focal"] = f"{params_path} focal_l"
-    elif (f := exif_focal(photo, w, h)) is not None:
-        focal, sources["focal"] = f, "EXIF FocalLengthIn35mmFilm"
-    else:
-        focal, sources["focal"] = float(np.hypot(w, h)), "default sqrt(W^2 + H^2) (CLIFF's)"
-    K = np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]])
-    camera = Camera(K, np.eye(3), np.zeros(3), w, h, "input")
-    # Body.
-    joints3d = np.asarray(params["pred_joints"]).reshape(-1, 3)[:24] if "pred_joints" in params else None
-    if landmarks is None and joints3d is None:
-        if detection is None:
-            raise PrepareError(f"{photo}: keypoints are needed for the body fit and {missing_exc}")
-        raise PrepareError(f"{photo}: no person found by MediaPipe")
-    sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
-    sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
-    fit = fit_anny_to_image(
-        K, mask, landmarks, joints3d, FIT_STEPS if steps is None else steps, mitsuba_silhouette(camera, RENDER_SIZE)
-    )
-    body = fit["body"]
-    spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
-    motion_obj = motion_with_input_frame(
-        body, fit["pose"], fit["global_orient"], fit["transl"], motion, np.array([0.0, -1.0, 0.0])
-    )
-    write_subject(
-        out,
-        spec,
-        {"input": camera},
-        motion_obj,
-        "input",
-        0,
-        {("input", 0): (rgb * mask[..., None], mask)},
-        {"prepare": {"photo": str(photo), **sources}},
-    )
-    # Report and overlay.
-    from .mesh_render import MeshRenderer
+    rgb, alpha = read_image(photo, "photo", max_megapixels=max_megapixels, error=PrepareError)
+    h, w = rgb.shape[:2]
+    if focal is not None and not (np.isfinite(focal) and focal > 0):
+        raise PrepareError(f"--focal must be a positive number of pixels, got {focal}")
+    params = read_params(Path(params_path)) if params_path is not None else {}
+    with folder_in_place(out, force) as tmp:  # fails here, before the body fit, if out cannot be written
+        mask, detection, mask_source, missing = person_mask(
+            photo, rgb, alpha, None if mask_path is None else Path(mask_path)
+        )
+        sources = {"mask": mask_source}
+        check_single_person(mask, photo)
+        landmarks = detection.landmarks if detection is not None else None
+        check_not_cut_off(mask, landmarks, photo)
+        # Camera.
+        if focal is not None:
+            sources["focal"] = "--focal"
+        elif "focal_l" in params:
+            focal, sources["focal"] = params["focal_l"], f"{params_path} focal_l"
+        elif (f := exif_focal(photo, w, h)) is not None:
+            focal, sources["focal"] = f, "EXIF FocalLengthIn35mmFilm"
+        else:
+            focal, sources["focal"] = float(np.hypot(w, h)), "default sqrt(W^2 + H^2) (CLIFF's)"
+        K = np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]])
+        camera = Camera(K, np.eye(3), np.zeros(3), w, h, "input")
+        # Body.
+        joints3d = params.get("pred_joints")
+        if landmarks is None and joints3d is None:
+            if detection is None:
+                raise PrepareError(f"{photo}: keypoints are needed for the body fit and {missing}")
+            raise PrepareError(f"{photo}: no person found by MediaPipe")
+        sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
+        sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
+        fit = fit_anny_to_image(
+            K, mask, landmarks, joints3d, FIT_STEPS if steps is None else steps, mitsuba_silhouette(camera, RENDER_SIZE)
+        )
+        body = fit["body"]
+        spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}
+        motion_obj = motion_with_input_frame(
+            body, fit["pose"], fit["global_orient"], fit["transl"], motion, np.array([0.0, -1.0, 0.0])
+        )
+        write_subject(
+            tmp,
+            spec,
+            {"input": camera},
+            motion_obj,
+            "input",
+            0,
+            {("input", 0): (rgb * mask[..., None], mask)},
+            {"prepare": {"photo": str(photo), **sources}},
+        )
+        # Report and overlay.
+        from .mesh_render import MeshRenderer
 
-    posed = body.pose(*motion_obj.frame(0))
-    render = MeshRenderer(body.faces).render(posed.vertices, [camera], ("mask",))["mask"][0] > 0
-    iou = float((render & mask).sum() / max((render | mask).sum(), 1))
-    report = {
-        "photo": str(photo),
-        "subject": str(out),
-        "image_size": [w, h],
-        "focal_px": focal,
-        "sources": sources,
-        "silhouette_iou": iou,
-        **fit["report"],
-        "seconds": time.perf_counter() - t0,
-    }
-    if "keypoint_error_px" in report:
-        report["keypoint_error_percent_of_height"] = 100.0 * report["keypoint_error_px"]["median"] / h
-    write_json(out / "fit_report.json", report)
-    write_overlay(out / "overlay.png", rgb, mask, render, landmarks, camera, posed, body)
+        posed = body.pose(*motion_obj.frame(0))
+        render = MeshRenderer(body.faces).render(posed.vertices, [camera], ("mask",))["mask"][0] > 0
+        iou = float((render & mask).sum() / max((render | mask).sum(), 1))
+        report = {
+            "photo": str(photo),
+            "subject": str(out),
+            "image_size": [w, h],
+            "focal_px": focal,
+            "sources": sources,
+            "silhouette_iou": iou,
+            **fit["report"],
+            "seconds": time.perf_counter() - t0,
+        }
+        if "keypoint_error_px" in report:
+            report["keypoint_error_percent_of_height"] = 100.0 * report["keypoint_error_px"]["median"] / h
+        write_json(tmp / "fit_report.json", report)
+        write_overlay(tmp / "overlay.png", rgb, mask, render, landmarks, camera, posed, body)
     return report
 
 

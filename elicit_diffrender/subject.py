@@ -4,7 +4,7 @@
     cameras.json   {"cam00": {"K": 3x3, "R": 3x3, "T": [x, y, z], "width": W, "height": H}, ...}
     motion.npz     pose (F, J, 3), global_orient (F, 3), transl (F, 3), optional frame_ids (F,)
     images/<cam>/<frame:06d>.png   RGB
-    masks/<cam>/<frame:06d>.png    8-bit, > 127 is the person
+    masks/<cam>/<frame:06d>.png    1-, 8- or 16-bit, above half of full scale is the person
 
 ``frame`` is a motion frame id (``frame_ids``, default 0..F-1). Fitting needs only the input view;
 any other image is ground truth for evaluation. Every problem is reported as a ``SubjectError``
@@ -21,6 +21,7 @@ import numpy as np
 
 from .body import BodyModel
 from .cameras import Camera
+from .checks import numeric, read_image, read_mask
 from .errors import ElicitError
 from .io import write_image, write_json
 from .motions import Motion, MotionError, load_motion_npz
@@ -45,18 +46,6 @@ def _read_json(path: Path) -> dict:
     return data
 
 
-def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise SubjectError(f"{where}: not numeric ({exc})") from exc
-    if arr.shape != shape:
-        raise SubjectError(f"{where}: expected shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise SubjectError(f"{where}: contains NaN or infinite values")
-    return arr
-
-
 def parse_cameras(data: dict, path: Path) -> dict[str, Camera]:
     if not data:
         raise SubjectError(f"{path}: no cameras")
@@ -68,9 +57,9 @@ def parse_cameras(data: dict, path: Path) -> dict[str, Camera]:
         for key in ("K", "R", "T", "width", "height"):
             if key not in c:
                 raise SubjectError(f"{where}: missing field '{key}'")
-        K = _matrix(c["K"], (3, 3), f"{where} field 'K'")
-        R = _matrix(c["R"], (3, 3), f"{where} field 'R'")
-        T = _matrix(c["T"], (3,), f"{where} field 'T'")
+        K = numeric(c["K"], f"{where} field 'K'", (3, 3), SubjectError)
+        R = numeric(c["R"], f"{where} field 'R'", (3, 3), SubjectError)
+        T = numeric(c["T"], f"{where} field 'T'", (3,), SubjectError)
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
             raise SubjectError(f"{where} field 'R': not a rotation matrix")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -80,23 +69,6 @@ def parse_cameras(data: dict, path: Path) -> dict[str, Camera]:
                 raise SubjectError(f"{where} field '{key}': must be a positive integer, got {c[key]!r}")
         cams[name] = Camera(K, R, T, c["width"], c["height"], name)
     return cams
-
-
-def read_png(path: Path, expect_hw: tuple[int, int] | None, what: str) -> np.ndarray:
-    import imageio.v3 as iio
-
-    if not path.is_file():
-        raise SubjectError(f"{path}: {what} not found")
-    try:
-        img = iio.imread(path)
-    except Exception as exc:  # imageio raises plugin-specific errors
-        raise SubjectError(f"{path}: unreadable {what} ({exc})") from exc
-    if expect_hw is not None and img.shape[:2] != expect_hw:
-        raise SubjectError(
-            f"{path}: {what} is {img.shape[1]}x{img.shape[0]}, expected "
-            f"{expect_hw[1]}x{expect_hw[0]} (the camera's width x height)"
-        )
-    return img
 
 
 @dataclass
@@ -135,18 +107,12 @@ class Subject:
     def image(self, camera: str, frame: int) -> np.ndarray:
         """(H, W, 3) float RGB in [0, 1]."""
         cam = self.cameras[camera]
-        img = read_png(self.image_path(camera, frame), (cam.height, cam.width), "image")
-        if img.ndim == 2:
-            img = np.repeat(img[..., None], 3, axis=2)
-        return img[..., :3].astype(np.float32) / 255.0
+        return read_image(self.image_path(camera, frame), "image", (cam.height, cam.width), error=SubjectError)[0]
 
     def mask(self, camera: str, frame: int) -> np.ndarray:
         """(H, W) bool person mask."""
         cam = self.cameras[camera]
-        m = read_png(self.mask_path(camera, frame), (cam.height, cam.width), "mask")
-        if m.ndim == 3:
-            m = m[..., 0]
-        return m > 127
+        return read_mask(self.mask_path(camera, frame), "mask", (cam.height, cam.width), error=SubjectError)
 
     def views(self) -> list[tuple[str, int]]:
         """Every (camera, frame) with both an image and a mask."""
@@ -173,7 +139,7 @@ def load_subject(path: str | Path) -> Subject:
     if body["model"] == "anny" and not isinstance(body.get("phenotype", {}), dict):
         raise SubjectError(f"{where}: field 'body.phenotype' must be an object")
     if body["model"] != "anny" and "betas" in body:
-        _matrix(body["betas"], (len(body["betas"]),), f"{where} field 'body.betas'")
+        numeric(body["betas"], f"{where} field 'body.betas'", (-1,), SubjectError)
     inp = meta.get("input")
     if not isinstance(inp, dict) or "camera" not in inp or "frame" not in inp:
         raise SubjectError(f'{where}: field \'input\' must be {{"camera": ..., "frame": ...}}')
@@ -191,7 +157,8 @@ def load_subject(path: str | Path) -> Subject:
         raise SubjectError(f"{where}: field 'input.frame' = {inp['frame']!r} is not a frame id of motion.npz")
     subject = Subject(root, body, cameras, motion, inp["camera"], inp["frame"], meta)
     subject.image(subject.input_camera, subject.input_frame)  # the input view must exist and match
-    subject.mask(subject.input_camera, subject.input_frame)
+    if not subject.mask(subject.input_camera, subject.input_frame).any():
+        raise SubjectError(f"{subject.mask_path(subject.input_camera, subject.input_frame)}: the input mask is empty")
     return subject
 
 

@@ -21,7 +21,7 @@ from scipy import ndimage
 from .body.anny_model import AnnyBody
 from .body.base import PART_NAMES
 from .body.template import vertex_normals
-from .io import write_image, write_json
+from .io import folder_in_place, write_image, write_json
 from .mesh_render import MeshAppearance, MeshRenderer
 from .motions import Motion, builtin_motion
 from .rigs import ring_cameras
@@ -298,12 +298,19 @@ def synthesize(
     spp: int = 32,
     n_cameras: int = 23,
     texture_size: int = 1024,
+    force: bool = False,
 ) -> Path:
-    """Write a synthetic ``elicit-subject/1`` folder and its contact sheet; returns the folder."""
+    """Write a synthetic ``elicit-subject/1`` folder and its contact sheet, as a whole (a non-empty ``out``
+    only with ``force``); returns the folder."""
+    with folder_in_place(out, force) as tmp:
+        _synthesize(seed, tmp, motion_name, size, spp, n_cameras, texture_size)
+    return Path(out)
+
+
+def _synthesize(seed: int, out: Path, motion_name: str, size: int, spp: int, n_cameras: int, texture_size: int):
     from tqdm import tqdm
 
     start = time.perf_counter()
-    out = Path(out)
     person = make_person(seed, texture_size)
     body = person.body
     target = builtin_motion(motion_name, body)
@@ -345,7 +352,6 @@ def synthesize(
     write_image(out / "texture.png", person.texture)
     write_contact_sheet(out, views, cameras, input_cam, len(motion))
     write_json(out / "synth.json", {"seed": seed, "seconds": time.perf_counter() - start, "views": len(views)})
-    return out
 
 
 def outfit_phenotype(outfit: Outfit) -> dict:

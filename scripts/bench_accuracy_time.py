@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+from elicit_diffrender.avatar import AVATAR_FILE
 from elicit_diffrender.benchtools import PSNR_TIE_DB
 from elicit_diffrender.fit.checkpoint import CHECKPOINT
 
@@ -79,7 +80,7 @@ def fit_point(elicit: str, subject: Path, run_dir: Path, overrides: list[str]) -
             sets += ["--set", kv]
     metrics = run_dir / "metrics.json"
     if not metrics.is_file():
-        if not (run_dir / "avatar.pt").is_file():
+        if not (run_dir / AVATAR_FILE).is_file():
             resume = ["--resume"] if (run_dir / CHECKPOINT).is_file() else []
             run(
                 [elicit, "fit", str(subject), "--out", str(run_dir), "--preset", preset, *sets, *resume],

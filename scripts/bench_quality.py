@@ -22,6 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from elicit_diffrender.avatar import AVATAR_FILE
 from elicit_diffrender.benchtools import PSNR_TIE_DB
 from elicit_diffrender.fit.checkpoint import CHECKPOINT
 
@@ -77,7 +78,7 @@ def job(elicit: str, subject: Path, run_dir: Path, overrides: list[str], env: di
     if not metrics.is_file():
         sets = [x for kv in overrides for x in ("--set", kv)]
         resume = ["--resume"] if (run_dir / CHECKPOINT).is_file() else []
-        if not (run_dir / "avatar.pt").is_file():
+        if not (run_dir / AVATAR_FILE).is_file():
             run([elicit, "fit", str(subject), "--out", str(run_dir), *sets, *resume], env, run_dir / "fit.log")
         run([elicit, "eval", str(run_dir), str(subject), "--out", str(metrics)], env, run_dir / "eval.log")
     return json.loads(metrics.read_text())

@@ -42,6 +42,7 @@ def main() -> int:
     import imageio.v3 as iio
 
     from elicit_diffrender.animate import contact_sheet, load_avatar
+    from elicit_diffrender.avatar import AVATAR_FILE
     from elicit_diffrender.body.fitting import RENDER_STEPS
     from elicit_diffrender.fit.checkpoint import CHECKPOINT
     from elicit_diffrender.fit.views import place_ring
@@ -84,7 +85,7 @@ def main() -> int:
     fits = []
     for name in [] if args.skip_fit else args.fit:
         subject_dir, run = args.work / name, args.work / f"{name}_run"
-        if not (run / "avatar.pt").is_file():
+        if not (run / AVATAR_FILE).is_file():
             resume = ["--resume"] if (run / CHECKPOINT).is_file() else []
             subprocess.run([elicit, "fit", str(subject_dir), "--out", str(run), *resume], check=True)
         subject = load_subject(subject_dir)

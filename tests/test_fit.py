@@ -19,7 +19,7 @@ from elicit_diffrender.fit import FitError, Trainer
 from elicit_diffrender.fit.checkpoint import CHECKPOINT, read_checkpoint
 from elicit_diffrender.fit.views import crop_image
 from elicit_diffrender.io import read_tensors, write_tensors
-from elicit_diffrender.subject import load_subject
+from elicit_diffrender.subject import SubjectError, load_subject
 from elicit_diffrender.synth import synthesize
 
 TINY = [
@@ -84,18 +84,40 @@ def test_without_occupancy_skipping_the_body_is_still_rendered(tiny_subject, tin
 
 
 def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
-    path = tiny_avatar.save(tmp_path / "a.pt")
+    path = tiny_avatar.save(tmp_path / "avatar.safetensors")
     back = load_avatar(path)
     cam = tiny_subject.cameras["cam01"].scaled(0.5)
-    frames = back.bone_transforms(*tiny_subject.motion.frame(2))
-    np.testing.assert_array_equal(
-        back.render_image(cam, frames, 24)["rgb"], tiny_avatar.render_image(cam, frames, 24)["rgb"]
-    )
-    data = torch.load(path, weights_only=True)
-    assert data["format"] == "elicit-avatar/1" and data["body"]["model"] == "anny"
-    (tmp_path / "bad.pt").write_bytes(b"junk")
-    with pytest.raises(AvatarError, match="unreadable"):
-        load_avatar(tmp_path / "bad.pt")
+    bones = back.bone_transforms(*tiny_subject.motion.frame(2))
+    expected = tiny_avatar.render_image(cam, bones, 24)["rgb"]
+    np.testing.assert_array_equal(back.render_image(cam, bones, 24)["rgb"], expected)
+    data = read_tensors(path)
+    assert data["format"] == "elicit-avatar/2" and data["body"]["model"] == "anny"
+    # An elicit-avatar/1 file of earlier versions (torch's format, older tensor names) still loads, safely.
+    legacy = tiny_avatar.state()
+    tensors = dict(legacy["tensors"])
+    tensors["canonical_frames"] = tensors.pop("canonical_bones")
+    tensors["clothing_room"] = tensors["field.occupancy"].clone()
+    torch.save({**legacy, "format": "elicit-avatar/1", "tensors": tensors}, tmp_path / "avatar.pt")
+    old = load_avatar(tmp_path / "avatar.pt")
+    np.testing.assert_array_equal(old.render_image(cam, bones, 24)["rgb"], expected)
+    del data["voxel_size"]
+    write_tensors(tmp_path / "missing.safetensors", data)
+    with pytest.raises(AvatarError, match=r"without the field\(s\) \['voxel_size'\]"):
+        load_avatar(tmp_path / "missing.safetensors")
+    (tmp_path / "bad.safetensors").write_bytes(b"junk")
+    with pytest.raises(AvatarError, match="unreadable avatar file"):
+        load_avatar(tmp_path / "bad.safetensors")
+
+
+def test_a_body_outside_the_input_view_is_refused(tmp_path, tiny_subject):
+    import shutil
+
+    root = shutil.copytree(tiny_subject.root, tmp_path / "s")
+    m = dict(np.load(root / "motion.npz"))
+    m["transl"] = m["transl"] + np.array([20.0, 0.0, 0.0])  # 20 m to the side: nothing left in the photo
+    np.savez(root / "motion.npz", **m)
+    with pytest.raises(SubjectError, match="covers 0% of the input mask"):
+        Trainer(load_subject(root), make_config("cpu-fast", None, TINY), tmp_path / "run")
 
 
 def test_config_presets_files_and_overrides(tmp_path):
@@ -277,10 +299,13 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     assert step >= 20, "no stage-2 checkpoint appeared"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    assert not (run / "avatar.pt").exists()
-    # A second start without --resume refuses to overwrite; with it, it continues from the checkpoint.
+    assert not (run / "avatar.safetensors").exists()
+    # A second start without --resume refuses to overwrite; with it, it continues from the checkpoint and
+    # removes what a kill in the middle of a checkpoint save leaves.
     again = subprocess.run(cmd, env=env, capture_output=True, text=True)
     assert again.returncode == 2 and "--resume" in again.stderr
+    stale = run / f".{CHECKPOINT}.k1ll3d.safetensors"
+    stale.write_bytes((run / CHECKPOINT).read_bytes()[:1000])
     done = subprocess.run(cmd + ["--resume"], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     log = (run / "log.txt").read_text()
@@ -288,4 +313,4 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     assert resumed and int(resumed[-1].rsplit("step", 1)[1]) >= step
     report = json.loads((run / "run.json").read_text())
     assert report["encoder"]["kind"] == "random-features" and "weights-free" in report["encoder"]["name"]
-    assert (run / "avatar.pt").is_file()
+    assert (run / "avatar.safetensors").is_file() and not stale.exists()

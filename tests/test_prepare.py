@@ -80,3 +80,38 @@ def test_prepare_without_mediapipe_needs_a_mask(tmp_path, synthetic_photo):
     _, photo, _ = synthetic_photo
     with pytest.raises((PrepareError, MediaPipeUnavailable)):
         prepare(photo, tmp_path / "out")
+
+
+@pytest.mark.skipif(not HAS_MEDIAPIPE, reason="MediaPipe environment not installed (scripts/setup.sh creates it)")
+def test_two_people_stop_with_a_message(tmp_path, synthetic_photo):
+    s, _, _ = synthetic_photo
+    rgb = s.image("cam00", 0)
+    write_image(tmp_path / "two.png", np.concatenate([rgb, rgb], 1))
+    with pytest.raises(PrepareError, match="several people"):
+        prepare(tmp_path / "two.png", tmp_path / "out", steps=10)
+    assert not (tmp_path / "out").exists()
+
+
+def test_with_a_mask_keypoints_are_found_on_grey(tmp_path, monkeypatch):
+    """Given a mask, MediaPipe sees the person on neutral grey, whatever the photo's background."""
+    import elicit_diffrender.prepare as prep
+    from elicit_diffrender.checks import read_image
+
+    seen = {}
+
+    def detect(path):
+        seen["rgb"] = read_image(path)[0]
+        raise MediaPipeUnavailable("stop here")
+
+    monkeypatch.setattr(prep, "detect_pose", detect)
+    photo = np.zeros((60, 40, 3))
+    photo[10:50, 15:25] = (0.9, 0.1, 0.1)
+    write_image(tmp_path / "p.png", photo)
+    mask = np.zeros((60, 40), np.uint8)
+    mask[10:50, 15:25] = 255
+    write_image(tmp_path / "m.png", mask)
+    with pytest.raises(PrepareError, match="keypoints are needed"):
+        prepare(tmp_path / "p.png", tmp_path / "out", mask_path=tmp_path / "m.png")
+    assert np.allclose(seen["rgb"][0, 0], 0.5, atol=0.01)  # the black background became grey
+    assert np.allclose(seen["rgb"][30, 20], (0.9, 0.1, 0.1), atol=0.01)  # the person is untouched
+    assert not (tmp_path / "out").exists()

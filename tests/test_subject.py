@@ -59,7 +59,7 @@ BAD_CASES = {
     "unknown frame": (_json_edit("subject.json", lambda d: d["input"].update(frame=7)), "'input.frame'"),
     "camera K shape": (
         _json_edit("cameras.json", lambda d: d["cam00"].update(K=[[1, 0], [0, 1]])),
-        "camera 'cam00' field 'K': expected shape",
+        "camera 'cam00' field 'K' must be \\(3, 3\\), got \\(2, 2\\)",
     ),
     "camera R": (
         _json_edit("cameras.json", lambda d: d["cam00"].update(R=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])),

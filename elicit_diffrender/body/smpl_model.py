@@ -8,12 +8,14 @@ SMPL is already in the world frame used here (+y up, facing +z). SMPL-X uses its
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..geometry import axis_angle_to_matrix, merge_bones
+from ..safe_load import UnsafeFileError, load_npz, load_pickle
 from .base import PART_NAMES, BodyModel, BodyModelError, PosedBody, apply_global, check_pose
 
 SMPL_JOINTS = [
@@ -61,6 +63,30 @@ def resolve_model_file(model: str, gender: str, model_path: str | Path | None) -
     raise BodyModelError(f"{model}: no {stem}.pkl or {stem}.npz under {root}")
 
 
+def model_arrays(path: Path) -> dict[str, np.ndarray]:
+    """An SMPL-family model file's contents as plain arrays, read without running code from it: ``.npz``
+    with pickles disallowed, ``.pkl`` through the restricted unpickler (sparse matrices become dense)."""
+    try:
+        if path.suffix == ".npz":
+            fields = load_npz(path)
+            data = {k: fields[k] for k in fields}
+        else:
+            data = load_pickle(path)
+    except UnsafeFileError as exc:
+        reason = str(exc).removeprefix(f"{path}: ")
+        raise BodyModelError(f"{path}: cannot load as an SMPL-family model file: {reason}") from None
+    if not isinstance(data, dict):
+        raise BodyModelError(f"{path}: not an SMPL-family model file (it holds a {type(data).__name__})")
+    out = {}
+    for key, value in data.items():
+        value = value.toarray() if hasattr(value, "toarray") else value
+        arr = np.asarray(value)
+        if arr.dtype.kind == "O":
+            raise BodyModelError(f"{path}: field {key!r} is not an array of numbers or strings")
+        out[str(key)] = arr
+    return out
+
+
 class SmplBody(BodyModel):
     """SMPL (24 joints) or SMPL-X (22 body joints) with fixed betas."""
 
@@ -68,18 +94,23 @@ class SmplBody(BodyModel):
         self, betas=None, gender: str = "neutral", model: str = "smpl", model_path: str | Path | None = None
     ) -> None:
         import smplx
+        from smplx.utils import Struct
 
         if model not in ("smpl", "smplx"):
             raise BodyModelError(f"unknown SMPL family model {model!r}; use 'smpl' or 'smplx'")
         if gender not in ("neutral", "male", "female"):
             raise BodyModelError(f"{model}: gender must be neutral, male or female, got {gender!r}")
         path = resolve_model_file(model, gender, model_path)
+        data = model_arrays(path)
         try:
             if model == "smpl":
-                layer = smplx.SMPL(model_path=str(path), gender=gender)
-            else:
-                layer = smplx.SMPLX(model_path=str(path), gender=gender, use_pca=False)
-        except Exception as exc:  # smplx raises assorted errors for unreadable files
+                layer = smplx.SMPL(model_path=str(path), gender=gender, data_struct=Struct(**data))
+            else:  # smplx reads SMPL-X files itself: hand it a copy holding nothing but plain arrays
+                with tempfile.TemporaryDirectory() as tmp:
+                    plain = Path(tmp) / f"SMPLX_{gender.upper()}.npz"
+                    np.savez(plain, **data)
+                    layer = smplx.SMPLX(model_path=str(plain), gender=gender, use_pca=False, ext="npz")
+        except Exception as exc:  # smplx raises assorted errors for files that are not its models
             raise BodyModelError(f"{path}: cannot load as a {model.upper()} model file ({exc})") from exc
         self.name = model
         n_body = 24 if model == "smpl" else 22

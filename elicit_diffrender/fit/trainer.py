@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..avatar import Avatar
+from ..avatar import AVATAR_FILE, Avatar
 from ..config import FitConfig, config_dict
 from ..device import default_device
 from ..io import write_image, write_json
@@ -64,7 +64,7 @@ class LossMeter:
 
 
 class Trainer:
-    """ELICIT's two-stage optimisation of one avatar; ``run`` writes ``avatar.pt`` and ``run.json``."""
+    """ELICIT's two-stage optimisation of one avatar; ``run`` writes the avatar file and ``run.json``."""
 
     def __init__(self, subject: Subject, cfg: FitConfig, run_dir: str | Path) -> None:
         t0 = time.perf_counter()
@@ -271,7 +271,7 @@ class Trainer:
         if self.cfg.body_prior:
             self.run_stage(1, self.cfg.init_steps)
         self.run_stage(2, self.cfg.steps)
-        avatar_path = self.avatar.save(self.run_dir / "avatar.pt")
+        avatar_path = self.avatar.save(self.run_dir / AVATAR_FILE)
         seconds = self.stats.seconds
         seconds["total"] = sum(v for k, v in seconds.items() if k != "total")
         info, perceptual = self.objective.encoder_info, self.objective.perceptual

@@ -22,11 +22,12 @@ from ..config import FitConfig
 from ..mesh_render import MeshAppearance, MeshRenderer
 from ..rigs import place_cameras, read_rig, ring_cameras, shipped_rig_path
 from ..sampling import body_yaw
-from ..subject import Subject
+from ..subject import Subject, SubjectError
 
 RING_SIZE = 512  # image size of the shipped ring rig
 PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
 CENTRED_PATCH_P = 0.9  # probability that a patch is centred on the person
+MIN_INPUT_IOU = 0.1  # below this overlap of body and input mask the subject's pose and camera disagree
 
 
 def crop_image(image: torch.Tensor, window: tuple[float, float, float], size: int) -> torch.Tensor:
@@ -168,6 +169,14 @@ class FitViews:
             2: training_poses(subject, cfg.train_frame_step, input_only),
         }
         ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
+        input_view = InputView.load(subject, cfg.input_scale, renderer, device)
+        body = input_view.labels >= 0
+        iou = (body & input_view.person).sum() / max((body | input_view.person).sum(), 1)
+        if iou < MIN_INPUT_IOU:
+            raise SubjectError(
+                f"{subject.root}: the body in the input pose covers {iou:.0%} of the input mask (IoU); check the "
+                f"input frame's transl and global_orient in motion.npz against the input camera in cameras.json"
+            )
         needed = list(dict.fromkeys(poses[1] + poses[2]))
         prior = PriorViews.render(subject, needed, ring, renderer)
-        return cls(InputView.load(subject, cfg.input_scale, renderer, device), ring, prior, poses)
+        return cls(input_view, ring, prior, poses)
