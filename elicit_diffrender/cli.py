@@ -63,13 +63,26 @@ def _eval(args: argparse.Namespace) -> None:
     from .evaluate import evaluate_run
     from .subject import load_subject
 
-    m = evaluate_run(args.run, load_subject(args.subject), args.out, args.scale, args.max_views)
+    m = evaluate_run(args.run, load_subject(args.subject), args.out, args.scale, args.max_views, align=args.align)
+    if "alignment" in m:
+        a = m["alignment"]
+        print(
+            f"aligned {a['fitted_subject']} to the subject: scale {a['scale']:.3f}, vertex error after alignment "
+            f"{100 * a['vertex_error_m']['mean']:.1f} cm mean, {100 * a['vertex_error_m']['max']:.1f} cm max"
+        )
     for split in ("novel_view", "novel_pose"):
+        if split not in m:
+            continue
         r = m[split]
         lp = "null" if r["lpips"] is None else f"{r['lpips']:.3f}"
         psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
         ssim = "n/a" if r["ssim"] is None else f"{r['ssim']:.3f}"
         print(f"{split}: PSNR {psnr}  SSIM {ssim}  LPIPS {lp}  ({r['views']} views)")
+        if "rear" in r and r["rear"]["views"]:
+            print(
+                f"  rear (> {r['rear']['degrees']:.0f} deg from the input): PSNR {r['rear']['psnr']:.2f}  "
+                f"SSIM {r['rear']['ssim']:.3f}  ({r['rear']['views']} views)"
+            )
     print(f"wrote {args.out}")
 
 
@@ -128,6 +141,23 @@ def _rigs(args: argparse.Namespace) -> None:
     print(write_rig(args.out, cams, comment))
 
 
+def _weights(args: argparse.Namespace) -> None:
+    from . import weights
+
+    if args.action == "list":
+        found = weights.on_disk()
+        if not found:
+            print("no CLIP weights on disk: fits use the mirror completion (weights-free fallback)")
+        for w in found:
+            print(f"{w.model}/{w.tag}  {w.megabytes:.0f} MB  {w.path}")
+        return
+    path = weights.fetch(args.model, args.tag, args.endpoint)
+    print(
+        f"fetched {args.model}/{args.tag} into {path}; fits with clip_model={args.model} "
+        f"clip_pretrained={args.tag} now use it"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="elicit", description="ELICIT: one-shot animatable avatars from a single photo")
     sub = p.add_subparsers(dest="command", required=True)
@@ -176,6 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", type=Path, required=True, help="metrics.json (grids are written beside it)")
     e.add_argument("--scale", type=unit_fraction, default=0.5, help="evaluation image scale, in (0, 1]")
     e.add_argument("--max-views", type=positive_int, default=None, help="evaluate at most this many views per split")
+    e.add_argument(
+        "--align",
+        action="store_true",
+        help="the run was fitted on another subject of this person (e.g. from prepare): align the bodies (Umeyama)",
+    )
     e.set_defaults(func=_eval)
 
     q = sub.add_parser("prepare", help="turn one photo into a subject: mask, camera and an Anny body fit")
@@ -201,6 +236,13 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--input-camera", type=int, default=0, help="zju: index of the input camera")
     i.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     i.set_defaults(func=_import)
+
+    w = sub.add_parser("weights", help="CLIP weights: fetch them (needs the network) or list what is on disk")
+    w.add_argument("action", choices=["fetch", "list"])
+    w.add_argument("model", nargs="?", default="ViT-B-32", help="open_clip model (paper preset: ViT-L-14)")
+    w.add_argument("tag", nargs="?", default="openai", help="open_clip pretrained tag")
+    w.add_argument("--endpoint", default=None, help="a Hugging Face hub mirror (as $HF_ENDPOINT)")
+    w.set_defaults(func=_weights)
 
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])

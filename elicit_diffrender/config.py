@@ -32,7 +32,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "stage2_color": ("template", "part_mean"),
     "train_poses": ("motion", "input"),
     "perceptual": ("auto", "lpips", "ssim"),
-    "encoder": ("auto", "clip", "random-features"),
+    "encoder": ("auto", "clip", "mirror", "random-features"),
     "baseline": ("none", "explicit_texture"),
 }
 
@@ -85,7 +85,8 @@ class FitConfig:
     w_perceptual: float = 1.0
     w_mse: float = 0.2
     w_init_alpha: float = 1.0  # stage 1: MSE of the rendered opacity against the body render's
-    w_semantic: float = 0.1
+    w_semantic: float = 0.1  # the semantic prior (0: off, with or without CLIP weights)
+    w_mirror: float = 0.01  # the semantic prior's weights-free fallback (mirror completion), without CLIP weights
     w_silhouette: float = 0.01
     w_edge: float = 0.01
     w_tv: float = 1e-2  # grid smoothness (no counterpart in the MLP-based paper)
@@ -93,7 +94,9 @@ class FitConfig:
     w_opacity: float = 0.2  # stage 2: binary-entropy prior on novel-view crop opacity (no counterpart in the paper)
     perceptual: str = "auto"  # "auto" (LPIPS if its weights are present, else SSIM), "lpips", "ssim"
     # --- semantic encoder --------------------------------------------------------------------------
-    encoder: str = "auto"  # "auto", "clip" or "random-features"
+    # "auto" (CLIP if its weights are on disk, else the mirror completion), "clip", "mirror" or
+    # "random-features" (a weights-free embedding, for comparison)
+    encoder: str = "auto"
     clip_model: str = "ViT-B-32"
     clip_pretrained: str = "openai"  # an open_clip tag or a local checkpoint file
     text_prompt: str = ""  # optional extra CLIP text reference (the paper's text guidance)

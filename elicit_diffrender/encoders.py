@@ -2,8 +2,10 @@
 
 ``load_encoder`` never downloads: a pretrained tag is resolved to a file already in the local
 caches (Hugging Face hub or ~/.cache/clip), or a checkpoint path is used directly. In ``auto`` mode,
-when no CLIP weights are on disk, the weights-free ``random-features`` encoder is used instead and
-``EncoderInfo`` says so, with the reason, for every log, run.json and report.
+when no CLIP weights are on disk, the semantic prior falls back to the weights-free mirror
+completion (``fit.completion``, no encoder at all) and ``EncoderInfo`` says so, with the reason,
+for every log, run.json and report. ``random-features`` is a weights-free image embedding kept
+for comparison: matching its statistics paints blotches of colour on unseen sides.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from .errors import ElicitError
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
-FALLBACK_NAME = "random-features (weights-free fallback)"
+FALLBACK_NAME = "mirror completion (weights-free fallback)"
+RANDOM_FEATURES_NAME = "random-features (weights-free)"
 
 
 class EncoderError(ElicitError):
@@ -30,7 +33,7 @@ class EncoderError(ElicitError):
 @dataclass
 class EncoderInfo:
     name: str  # what is actually used, e.g. "clip ViT-B-32/openai" or the fallback's name
-    kind: str  # "clip" or "random-features"
+    kind: str  # "clip", "mirror" (no encoder) or "random-features"
     weights: str  # the file the weights came from ("" for the fallback)
     reason: str  # why the fallback was chosen ("" otherwise)
 
@@ -141,33 +144,34 @@ class RandomFeatureEncoder(nn.Module):
         return F.normalize(torch.cat(parts, 1), dim=-1)
 
     def encode_text(self, text: str) -> torch.Tensor:
-        raise EncoderError(f"{FALLBACK_NAME} has no text tower; text prompts need CLIP weights")
+        raise EncoderError(f"{RANDOM_FEATURES_NAME} has no text tower; text prompts need CLIP weights")
 
 
 def resolve_clip_weights(model: str, pretrained: str) -> str | None:
     """A local file for ``pretrained`` (a path, or an open_clip tag already in a cache), else None."""
     if Path(pretrained).expanduser().is_file():
         return str(Path(pretrained).expanduser())
-    import open_clip
+    from huggingface_hub import try_to_load_from_cache
 
-    cfg = open_clip.get_pretrained_cfg(model, pretrained)
-    if not cfg:
-        raise EncoderError(f"open_clip has no pretrained tag {pretrained!r} for {model!r} and no such file exists")
+    from .weights import HUB_FILE, WeightsError, hub_cache, hub_source, pretrained_cfg, url_cache
+
+    try:
+        cfg = pretrained_cfg(model, pretrained)
+    except WeightsError as exc:
+        raise EncoderError(f"{exc}, and no such file exists") from None
     if cfg.get("file"):
         return cfg["file"] if Path(cfg["file"]).is_file() else None
-    hub = cfg.get("hf_hub", "")
-    if hub:
-        from huggingface_hub import try_to_load_from_cache
-
-        repo, filename = os.path.split(hub)
-        names = [filename] if filename else ["open_clip_model.safetensors", "open_clip_pytorch_model.bin"]
+    source = hub_source(cfg)
+    if source is not None:
+        repo, filename = source
+        names = [filename] if filename != HUB_FILE else [HUB_FILE, "open_clip_pytorch_model.bin"]
         for name in names:
-            hit = try_to_load_from_cache(repo, name)
+            hit = try_to_load_from_cache(repo, name, cache_dir=hub_cache())
             if isinstance(hit, str):
                 return hit
     url = cfg.get("url", "")
     if url:
-        candidate = Path.home() / ".cache" / "clip" / os.path.basename(url)
+        candidate = url_cache() / os.path.basename(url)
         if candidate.is_file():
             return str(candidate)
     return None
@@ -190,12 +194,15 @@ def build_clip(model: str, weights: str | None, quick_gelu: bool = False) -> Cli
 
 def load_encoder(
     kind: str = "auto", model: str = "ViT-B-32", pretrained: str = "openai"
-) -> tuple[nn.Module, EncoderInfo]:
-    """The semantic encoder and a record of what was used: ``auto`` falls back only without weights."""
+) -> tuple[nn.Module | None, EncoderInfo]:
+    """The semantic encoder (None for the mirror completion) and a record of what was used: ``auto``
+    falls back to the mirror completion only without weights."""
     if kind == "random-features":
-        return RandomFeatureEncoder(), EncoderInfo(FALLBACK_NAME, "random-features", "", "requested by config")
+        return RandomFeatureEncoder(), EncoderInfo(RANDOM_FEATURES_NAME, "random-features", "", "requested by config")
+    if kind == "mirror":
+        return None, EncoderInfo(FALLBACK_NAME, "mirror", "", "requested by config")
     if kind not in ("auto", "clip"):
-        raise EncoderError(f"unknown encoder {kind!r}; use auto, clip or random-features")
+        raise EncoderError(f"unknown encoder {kind!r}; use auto, clip, mirror or random-features")
     weights = resolve_clip_weights(model, pretrained)
     if weights is None:
         reason = (
@@ -204,7 +211,7 @@ def load_encoder(
         )
         if kind == "clip":
             raise EncoderError(reason)
-        return RandomFeatureEncoder(), EncoderInfo(FALLBACK_NAME, "random-features", "", reason)
+        return None, EncoderInfo(FALLBACK_NAME, "mirror", "", reason)
     import open_clip
 
     cfg = open_clip.get_pretrained_cfg(model, pretrained) if not Path(pretrained).expanduser().is_file() else {}

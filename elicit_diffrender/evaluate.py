@@ -1,7 +1,17 @@
 """``elicit eval``: novel-view and novel-pose metrics in the Neural Body protocol.
 
-* novel view: the input frame from every camera except the input one;
+* novel view: the input frame from every camera except the input one; ``rear`` summarises the
+  cameras more than ``REAR_DEGREES`` from the input camera around the body's vertical axis (the
+  side a single photo never shows);
 * novel pose: the input camera at every other frame.
+
+A run fitted on another subject of the same person (the photo path: ``elicit prepare`` on a
+synthetic subject's input image) is evaluated with ``align``: a single photo fixes neither scale
+nor depth, so the run's frame is mapped onto the ground truth's by the similarity (rotation,
+translation, scale; Umeyama) that best maps its input-pose body's vertices onto the ground-truth
+body's (both Anny meshes, so vertices correspond). The alignment is for evaluation only; the pose
+error that remains counts. Only the novel-view split is evaluated then (the fitted subject has its
+own motion).
 
 PSNR is taken over the pixels inside the projected 3D box of the posed body (padded by
 ``BOX_PADDING`` metres on every side: the convex hull of its 8 projected corners); SSIM
@@ -24,6 +34,17 @@ from .io import write_image, write_json
 from .subject import Subject
 
 BOX_PADDING = 0.05
+REAR_DEGREES = 120.0
+
+
+def angle_around_body(camera: Camera, reference: Camera, centre: np.ndarray, up: np.ndarray) -> float:
+    """Degrees between two cameras' directions from ``centre``, seen along the ``up`` axis (0..180)."""
+    dirs = []
+    for cam in (camera, reference):
+        d = cam.center - centre
+        d = d - (d @ up) * up
+        dirs.append(d / max(np.linalg.norm(d), 1e-9))
+    return float(np.degrees(np.arccos(np.clip(dirs[0] @ dirs[1], -1.0, 1.0))))
 
 
 def box_mask(camera: Camera, vertices: np.ndarray, padding: float = BOX_PADDING) -> np.ndarray:
@@ -79,16 +100,46 @@ class Lpips:
 
 
 Renderer = Callable[[Camera, int], np.ndarray]
+SPLITS = ("novel_view", "novel_pose")
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity ``dst ~ s R src + t`` of least squares between corresponding (N, 3) points."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rot = u @ np.diag(d) @ vt
+    scale = float((sig * d).sum() / (a**2).sum(1).mean())
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def camera_in_frame(camera: Camera, scale: float, rot: np.ndarray, transl: np.ndarray) -> Camera:
+    """``camera`` (of the frame ``x' = s R x + t``) as a camera of the frame of ``x``: same image."""
+    return Camera(
+        camera.K.copy(),
+        camera.R @ rot,
+        (camera.R @ transl + camera.T) / scale,
+        camera.width,
+        camera.height,
+        camera.name,
+    )
 
 
 def evaluate(
-    subject: Subject, render: Renderer, out_dir: str | Path, scale: float = 0.5, max_views: int | None = None
+    subject: Subject,
+    render: Renderer,
+    out_dir: str | Path,
+    scale: float = 0.5,
+    max_views: int | None = None,
+    splits: tuple[str, ...] = SPLITS,
 ) -> dict:
     """Metrics of ``render(camera, frame_index) -> (H, W, 3)`` against the subject's ground truth."""
     out_dir = Path(out_dir)
     lp = Lpips()
     body = subject.body
-    splits = {
+    views_of = {
         "novel_view": [
             (c, subject.input_frame)
             for c in subject.cameras
@@ -101,7 +152,9 @@ def evaluate(
         ],
     }
     result: dict = {"box_padding_m": BOX_PADDING, "scale": scale, "lpips_reason": lp.reason or None}
-    for split, views in splits.items():
+    for split, views in views_of.items():
+        if split not in splits:
+            continue
         if max_views is not None and len(views) > max_views:
             views = [views[i] for i in np.linspace(0, len(views) - 1, max_views).astype(int)]
         rows, tiles = [], []
@@ -120,6 +173,10 @@ def evaluate(
                 "ssim": ssim_in_rect(pred, gt, mask),
                 "lpips": lp(pred, gt, mask),
             }
+            if split == "novel_view":
+                ref = subject.cameras[subject.input_camera]
+                centre = body.pose(*subject.motion.frame(index)).vertices.mean(0)
+                row["degrees_from_input"] = angle_around_body(cam, ref, centre, -ref.R[1])
             rows.append(row)
             err = np.abs(pred - gt).mean(-1, keepdims=True)
             tiles.append(np.concatenate([gt, pred, np.clip(err * 3, 0, 1).repeat(3, -1)], 1))
@@ -128,6 +185,14 @@ def evaluate(
             for k in ("psnr", "ssim", "lpips")
         }
         result[split] = {**mean, "views": len(rows), "per_view": rows}
+        if split == "novel_view":
+            rear = [r for r in rows if r["degrees_from_input"] > REAR_DEGREES]
+            result[split]["rear"] = {
+                "degrees": REAR_DEGREES,
+                "views": len(rear),
+                "psnr": float(np.mean([r["psnr"] for r in rear])) if rear else None,
+                "ssim": float(np.mean([r["ssim"] for r in rear])) if rear else None,
+            }
         if tiles:
             grid = np.concatenate(tiles[:8], 0)
             write_image(out_dir / f"{split}_grid.png", grid)
@@ -149,21 +214,52 @@ def evaluate_run(
     scale: float = 0.5,
     max_views: int | None = None,
     n_samples: int = 64,
+    align: bool = False,
 ) -> dict:
-    """Evaluate a fitted avatar (``run`` folder) and write ``metrics.json`` + grids next to ``out``."""
+    """Evaluate a fitted avatar (``run`` folder) and write ``metrics.json`` + grids next to ``out``;
+    with ``align``, a run fitted on another subject of the same person (see the module's docstring)."""
     import json
 
     from .animate import load_avatar
+    from .subject import SubjectError, load_subject
 
     run = Path(run)
     avatar = load_avatar(run)
-
-    def render(camera: Camera, index: int) -> np.ndarray:
-        return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)["rgb"]
-
-    out = Path(out)
-    metrics = evaluate(subject, render, out.parent, scale, max_views)
     report = json.loads((run / "run.json").read_text()) if (run / "run.json").is_file() else {}
+    extra: dict = {}
+    if align:
+        if not report.get("subject"):
+            raise SubjectError(f"{run}: --align needs the run's run.json, which names the subject it was fitted on")
+        fitted = load_subject(report["subject"])
+        src = fitted.body.pose(*fitted.motion.frame(fitted.input_index)).vertices
+        dst = subject.body.pose(*subject.motion.frame(subject.input_index)).vertices
+        if src.shape != dst.shape:
+            raise SubjectError(
+                f"{report['subject']}: its body has {len(src)} vertices and {subject.root}'s {len(dst)}; --align needs "
+                "the same body model for both"
+            )
+        sim = umeyama(src, dst)
+        pose = fitted.motion.frame(fitted.input_index)
+        residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
+        extra["alignment"] = {
+            "fitted_subject": str(report["subject"]),
+            "scale": sim[0],
+            "vertex_error_m": {"mean": float(residual.mean()), "max": float(residual.max())},
+        }
+
+        def render(camera: Camera, index: int) -> np.ndarray:
+            return avatar.render_pose(camera_in_frame(camera, *sim), *pose, n_samples)["rgb"]
+
+        splits: tuple[str, ...] = ("novel_view",)
+    else:
+
+        def render(camera: Camera, index: int) -> np.ndarray:
+            return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)["rgb"]
+
+        splits = SPLITS
+    out = Path(out)
+    metrics = evaluate(subject, render, out.parent, scale, max_views, splits)
+    metrics.update(extra)
     metrics["encoder"] = (report.get("encoder") or {}).get("name")
     metrics["fit_seconds"] = (report.get("seconds") or {}).get("total")
     write_json(out, metrics)

@@ -75,7 +75,14 @@ def test_render_and_eval_commands(tmp_path):
 
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["novel_view"]["views"] == 2 and m["novel_view"]["psnr"] > 5 and m["novel_view"]["lpips"] is None
-    assert m["encoder"] == "random-features (weights-free fallback)" and m["lpips_reason"]
+    assert m["encoder"] == "mirror completion (weights-free fallback)" and m["lpips_reason"]
+    assert set(m["novel_view"]["rear"]) == {"degrees", "views", "psnr", "ssim"}
+    # Aligned to itself (the photo path's evaluation): the identity, and the same novel-view images.
+    aligned = tmp_path / "aligned.json"
+    assert main(["eval", str(run), str(subject), "--out", str(aligned), "--max-views", "2", "--align"]) == 0
+    a = json.loads(aligned.read_text())
+    assert abs(a["alignment"]["scale"] - 1) < 1e-6 and a["alignment"]["vertex_error_m"]["max"] < 1e-6
+    assert "novel_pose" not in a and abs(a["novel_view"]["psnr"] - m["novel_view"]["psnr"]) < 1e-3
 
 
 @pytest.mark.parametrize("args", [["--help"], ["fit", "--help"]])

@@ -56,13 +56,15 @@ def test_missing_weights_fall_back_by_name_or_fail(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path))
     assert resolve_clip_weights("ViT-B-32", "openai") is None
     enc, info = load_encoder("auto", "ViT-B-32", "openai")
-    assert isinstance(enc, RandomFeatureEncoder) and info.name == FALLBACK_NAME and "no local weights" in info.reason
+    assert enc is None and info.kind == "mirror" and info.name == FALLBACK_NAME and "no local weights" in info.reason
     with pytest.raises(EncoderError, match="no local weights"):
         load_encoder("clip", "ViT-B-32", "openai")
     with pytest.raises(EncoderError, match="no pretrained tag"):
         load_encoder("clip", "ViT-B-32", "not-a-tag")
-    _, info = load_encoder("random-features")
-    assert info.reason == "requested by config"
+    enc, info = load_encoder("random-features")
+    assert isinstance(enc, RandomFeatureEncoder) and info.reason == "requested by config"
+    enc, info = load_encoder("mirror")
+    assert enc is None and info.name == FALLBACK_NAME and info.reason == "requested by config"
 
 
 def test_fallback_is_colour_aware_and_masked():

@@ -312,5 +312,6 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     resumed = [line for line in log.splitlines() if "resumed from" in line]
     assert resumed and int(resumed[-1].rsplit("step", 1)[1]) >= step
     report = json.loads((run / "run.json").read_text())
-    assert report["encoder"]["kind"] == "random-features" and "weights-free" in report["encoder"]["name"]
+    assert report["encoder"]["kind"] == "mirror" and "weights-free fallback" in report["encoder"]["name"]
+    assert "mirror" in report["final_losses"]["stage2"] and "semantic" not in report["final_losses"]["stage2"]
     assert (run / "avatar.safetensors").is_file() and not stale.exists()

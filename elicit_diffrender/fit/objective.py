@@ -3,13 +3,17 @@
 * stage 1: a patch of a body-prior render from a ring camera: ``perceptual``, ``mse``, ``alpha``;
 * stage 2, input step: a patch of the input photo: ``perceptual``, ``mse``;
 * stage 2, novel step: a hybrid-sampled (pose, camera, part) crop: ``silhouette`` and ``edge`` against
-  the body's mask, ``opacity`` (binary entropy), ``semantic`` against a reference crop, ``text``;
-* every step: ``tv`` (grid smoothness) and, in stage 2, ``sparsity`` (density outside the body).
+  the body's mask, ``opacity`` (binary entropy), ``semantic`` against a reference crop (with a CLIP or
+  random-features encoder), ``text``;
+* every step: ``tv`` (grid smoothness) and, in stage 2, ``sparsity`` (density outside the body) and,
+  when the semantic prior falls back to the weights-free mirror completion, ``mirror``.
 
 A term whose weight is 0 is not computed.
 """
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 import torch
@@ -17,10 +21,11 @@ import torch
 from ..body import BodyModel
 from ..body.template import vertex_normals
 from ..config import FitConfig
-from ..encoders import load_encoder
+from ..encoders import FALLBACK_NAME, EncoderError, load_encoder
 from ..field import CanonicalField, grid_points, signed_distance
 from ..losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..sampling import NovelView, crop_window, part_pixels, plan_novel_view
+from .completion import MirrorCompletion
 from .render import PoseRenderer
 from .streams import RandomStreams
 from .views import FitViews, crop_image, min_part_pixels, random_patch
@@ -34,11 +39,13 @@ TERMS = {
     "edge": "w_edge",
     "opacity": "w_opacity",
     "semantic": "w_semantic",
+    "mirror": "w_mirror",
     "text": "w_text",
     "tv": "w_tv",
     "sparsity": "w_sparsity",
 }
 Terms = dict[str, torch.Tensor]
+log = logging.getLogger("elicit.fit")
 
 
 def outside_body(body: BodyModel, field: CanonicalField, device: torch.device) -> torch.Tensor:
@@ -55,16 +62,38 @@ class Objective:
         self.device = renderer.avatar.device
         self.field = renderer.avatar.field
         self.weights = {name: float(getattr(cfg, key)) for name, key in TERMS.items()}
-        self.encoder, self.encoder_info = None, None
+        self.encoder, self.encoder_info, self.completion = None, None, None
         if self.on("semantic") or self.on("text"):
             self.encoder, self.encoder_info = load_encoder(cfg.encoder, cfg.clip_model, cfg.clip_pretrained)
-            self.encoder.to(self.device)
+            if self.encoder is not None:
+                self.encoder.to(self.device)
+        if self.encoder_info is not None and self.encoder_info.kind == "mirror":
+            if cfg.text_prompt and self.on("text"):
+                raise EncoderError(f"text_prompt needs CLIP weights; the semantic prior here is {FALLBACK_NAME}")
+            if self.on("semantic") and self.on("mirror"):
+                self.completion = self._mirror_completion(body, cfg.box_margin)
         self.text_embedding = None
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
         self.perceptual = Perceptual(cfg.perceptual, self.device)
         self.outside_body = outside_body(body, self.field, self.device) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
+
+    def _mirror_completion(self, body: BodyModel, margin: float) -> MirrorCompletion:
+        view = self.views.input
+        canon = body.pose(body.canonical_pose())
+        normals = vertex_normals(canon.vertices, body.faces)
+        pairs = MirrorCompletion.build(self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin)
+        rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
+        log.info(
+            "semantic prior: %s; %.0f%% of the body's vertices seen; %d of %d unseen colour cells have a source (%s)",
+            FALLBACK_NAME,
+            100 * view.seen.mean(),
+            len(pairs),
+            pairs.unseen,
+            rules,
+        )
+        return pairs
 
     def on(self, name: str) -> bool:
         return self.weights[name] > 0
@@ -186,4 +215,6 @@ class Objective:
             terms["tv"] = self.field.tv_loss(block)
         if stage == 2 and self.on("sparsity"):
             terms["sparsity"] = self.field.sparsity_loss(block, self.outside_body)
+        if stage == 2 and self.completion is not None:
+            terms["mirror"] = self.completion.loss(self.field)
         return terms

@@ -16,13 +16,14 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..body import PART_NAMES, BodyModel
-from ..body.template import template_colors
+from ..body.template import template_colors, vertex_normals
 from ..cameras import Camera
 from ..config import FitConfig
 from ..mesh_render import MeshAppearance, MeshRenderer
 from ..rigs import place_cameras, read_rig, ring_cameras, shipped_rig_path
 from ..sampling import body_yaw
 from ..subject import Subject, SubjectError
+from .completion import visible_vertices
 
 RING_SIZE = 512  # image size of the shipped ring rig
 PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
@@ -124,6 +125,7 @@ class InputView:
     mask: torch.Tensor  # (H, W) 0/1 float on the fit's device
     person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
     labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
+    seen: np.ndarray  # (V,) bool: the body vertices the camera sees
 
     @classmethod
     def load(cls, subject: Subject, scale: float, renderer: MeshRenderer, device: torch.device) -> InputView:
@@ -134,8 +136,11 @@ class InputView:
         mask = (F.interpolate(msk[None], size=size, mode="area")[0, 0] > 0.5).float()
         image = F.interpolate(img[None], size=size, mode="area")[0] * mask
         posed = subject.body.pose(*subject.motion.frame(subject.input_index))
-        labels = renderer.render(posed.vertices, [camera], ("labels",))["labels"][0]
-        return cls(camera, image.to(device), mask.to(device), mask.numpy() > 0.5, labels)
+        out = renderer.render(posed.vertices, [camera], ("labels", "depth"))
+        person = mask.numpy() > 0.5
+        normals = vertex_normals(posed.vertices, subject.body.faces)
+        seen = visible_vertices(posed.vertices, normals, camera, out["depth"][0], person)
+        return cls(camera, image.to(device), mask.to(device), person, out["labels"][0], seen)
 
     def part_colors(self) -> np.ndarray:
         """(P, 3) mean colour of every body part in the image (the whole person's where a part is unseen)."""

@@ -1,0 +1,101 @@
+"""``elicit weights fetch/list`` against a local stand-in of the Hugging Face hub, with a tiny random open_clip
+model; a fit then picks the fetched weights up with no flag."""
+
+import hashlib
+import http.server
+import json
+import threading
+
+import pytest
+import torch
+
+from elicit_diffrender.cli import main
+from elicit_diffrender.encoders import load_encoder, resolve_clip_weights
+
+TINY = {
+    "embed_dim": 32,
+    "vision_cfg": {"image_size": 64, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
+    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
+}
+MODEL, TAG, REPO = "elicit-tiny-weights", "standin", "elicit/tiny-weights"
+COMMIT = "0" * 40
+
+
+@pytest.fixture
+def hub(tmp_path, monkeypatch):
+    """A local HTTP server that answers the hub's resolve URLs for one repository holding a tiny model."""
+    import open_clip
+    from open_clip import pretrained
+    from safetensors.torch import save_file
+
+    (tmp_path / f"{MODEL}.json").write_text(json.dumps(TINY))
+    open_clip.add_model_config(tmp_path / f"{MODEL}.json")
+    monkeypatch.setitem(pretrained._PRETRAINED, MODEL, {TAG: pretrained._pcfg(hf_hub=f"{REPO}/")})
+    torch.manual_seed(0)
+    model = open_clip.create_model(MODEL, pretrained=None)
+    blob = tmp_path / "served.safetensors"
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(blob))
+    data = blob.read_bytes()
+    etag = hashlib.sha256(data).hexdigest()
+    requests = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def _head(self) -> bool:
+            requests.append(self.path)
+            if self.path != f"/{REPO}/resolve/main/open_clip_model.safetensors":
+                self.send_response(404)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return False
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.send_header("ETag", f'"{etag}"')
+            self.send_header("X-Repo-Commit", COMMIT)
+            self.end_headers()
+            return True
+
+        def do_HEAD(self):  # noqa: N802 (http.server's names)
+            self._head()
+
+        def do_GET(self):  # noqa: N802
+            if self._head():
+                self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hub-cache"))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("HF_HUB_DISABLE_XET", "1")
+    yield f"http://127.0.0.1:{server.server_address[1]}", model, requests
+    server.shutdown()
+
+
+def test_fetch_list_and_pick_up(hub, capsys):
+    endpoint, model, requests = hub
+    assert resolve_clip_weights(MODEL, TAG) is None
+    assert main(["weights", "list"]) == 0
+    assert "no CLIP weights on disk" in capsys.readouterr().out
+    assert main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint]) == 0
+    out = capsys.readouterr().out
+    assert requests and "hub-cache" in out
+    path = resolve_clip_weights(MODEL, TAG)
+    assert path is not None and path in out
+    assert main(["weights", "list"]) == 0
+    listing = capsys.readouterr().out
+    assert f"{MODEL}/{TAG}" in listing and path in listing
+    # A fit's default encoder mode finds the file with no flag, and it holds the served weights.
+    enc, info = load_encoder("auto", MODEL, TAG)
+    assert info.kind == "clip" and info.weights == path
+    served = model.state_dict()
+    for key, value in enc.model.state_dict().items():
+        torch.testing.assert_close(value, served[key])
+
+
+def test_fetch_failures_are_one_line(hub, capsys):
+    endpoint, _, _ = hub
+    assert main(["weights", "fetch", MODEL, "no-such-tag", "--endpoint", endpoint]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no pretrained tag 'no-such-tag'" in err and len(err.splitlines()) == 1
