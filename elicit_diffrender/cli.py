@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from .checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
+from .config import PRESETS, FitConfig
 from .errors import ElicitError
 
 
@@ -239,8 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = sub.add_parser("weights", help="CLIP weights: fetch them (needs the network) or list what is on disk")
     w.add_argument("action", choices=["fetch", "list"])
-    w.add_argument("model", nargs="?", default="ViT-B-32", help="open_clip model (paper preset: ViT-L-14)")
-    w.add_argument("tag", nargs="?", default="openai", help="open_clip pretrained tag")
+    clip = {name: PRESETS[name].get("clip_model", FitConfig.clip_model) for name in PRESETS}
+    w.add_argument("model", nargs="?", default=FitConfig.clip_model, help=f"open_clip model (presets: {clip})")
+    w.add_argument("tag", nargs="?", default=FitConfig.clip_pretrained, help="open_clip pretrained tag")
     w.add_argument("--endpoint", default=None, help="a Hugging Face hub mirror (as $HF_ENDPOINT)")
     w.set_defaults(func=_weights)
 

@@ -165,7 +165,8 @@ def evaluate(
             gt = _resize(gt, (small.height, small.width))
             index = int(np.nonzero(subject.motion.frame_ids == frame)[0][0])
             pred = np.clip(render(small, index), 0.0, 1.0)
-            mask = box_mask(small, body.pose(*subject.motion.frame(index)).vertices)
+            posed = body.pose(*subject.motion.frame(index)).vertices
+            mask = box_mask(small, posed)
             row = {
                 "camera": cam_name,
                 "frame": frame,
@@ -175,8 +176,7 @@ def evaluate(
             }
             if split == "novel_view":
                 ref = subject.cameras[subject.input_camera]
-                centre = body.pose(*subject.motion.frame(index)).vertices.mean(0)
-                row["degrees_from_input"] = angle_around_body(cam, ref, centre, -ref.R[1])
+                row["degrees_from_input"] = angle_around_body(cam, ref, posed.mean(0), -ref.R[1])
             rows.append(row)
             err = np.abs(pred - gt).mean(-1, keepdims=True)
             tiles.append(np.concatenate([gt, pred, np.clip(err * 3, 0, 1).repeat(3, -1)], 1))
@@ -231,7 +231,8 @@ def evaluate_run(
         if not report.get("subject"):
             raise SubjectError(f"{run}: --align needs the run's run.json, which names the subject it was fitted on")
         fitted = load_subject(report["subject"])
-        src = fitted.body.pose(*fitted.motion.frame(fitted.input_index)).vertices
+        pose = fitted.motion.frame(fitted.input_index)
+        src = fitted.body.pose(*pose).vertices
         dst = subject.body.pose(*subject.motion.frame(subject.input_index)).vertices
         if src.shape != dst.shape:
             raise SubjectError(
@@ -239,7 +240,6 @@ def evaluate_run(
                 "the same body model for both"
             )
         sim = umeyama(src, dst)
-        pose = fitted.motion.frame(fitted.input_index)
         residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
         extra["alignment"] = {
             "fitted_subject": str(report["subject"]),

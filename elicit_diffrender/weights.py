@@ -19,8 +19,6 @@ from pathlib import Path
 
 from .errors import ElicitError
 
-DEFAULT = ("ViT-B-32", "openai")  # cpu-fast
-PAPER = ("ViT-L-14", "openai")  # the paper's encoder (preset ``paper``)
 HUB_FILE = "open_clip_model.safetensors"
 
 
@@ -84,27 +82,35 @@ def fetch(model: str, tag: str, endpoint: str | None = None) -> Path:
     raise WeightsError(f"open_clip's tag {model}/{tag} names neither a hub repository nor a URL")
 
 
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def _fetch_url(url: str, folder: Path) -> Path:
-    """Download ``url`` into ``folder`` atomically; a SHA-256 in the URL's path (OpenAI's) is checked."""
+    """Download ``url`` into ``folder`` atomically; a SHA-256 in the URL's path (OpenAI's) is checked,
+    also of a file already there (a mismatching one is downloaded again)."""
     folder.mkdir(parents=True, exist_ok=True)
     target = folder / os.path.basename(url)
-    if target.is_file():
-        return target
     expected = url.split("/")[-2] if len(url.split("/")) > 1 else ""
-    digest = hashlib.sha256()
+    checked = len(expected) == 64
+    if target.is_file() and (not checked or _sha256(target) == expected):
+        return target
     with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{target.name}.", suffix=".partial", delete=False) as tmp:
         try:
             with urllib.request.urlopen(url, timeout=60) as response:
-                while chunk := response.read(1 << 20):
-                    digest.update(chunk)
-                    tmp.write(chunk)
+                shutil.copyfileobj(response, tmp, 1 << 20)
         except BaseException:
             Path(tmp.name).unlink(missing_ok=True)
             raise
-    if len(expected) == 64 and digest.hexdigest() != expected:
+    actual = _sha256(Path(tmp.name))
+    if checked and actual != expected:
         Path(tmp.name).unlink(missing_ok=True)
-        raise WeightsError(f"{url}: SHA-256 {digest.hexdigest()} does not match the {expected} in its address")
-    shutil.move(tmp.name, target)
+        raise WeightsError(f"{url}: SHA-256 {actual} does not match the {expected} in its address")
+    os.replace(tmp.name, target)
     return target
 
 

@@ -17,7 +17,6 @@ Finished jobs are reused, so an interrupted run resumes.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -46,15 +45,14 @@ def prepare_subject(elicit: str, truth: Path, out: Path, motion: str, env: dict)
     """``elicit prepare`` on the synthetic subject's input image, mask and focal length."""
     if (out / "subject.json").is_file():
         return
-    meta = json.loads((truth / "subject.json").read_text())
-    cam, frame = meta["input"]["camera"], int(meta["input"]["frame"])
-    cameras = json.loads((truth / "cameras.json").read_text())
-    cameras = cameras.get("cameras", cameras)
-    focal = float(cameras[cam]["K"][0][0])
-    image = truth / "images" / cam / f"{frame:06d}.png"
-    mask = truth / "masks" / cam / f"{frame:06d}.png"
-    cmd = [elicit, "prepare", str(image), "--mask", str(mask), "--focal", str(focal), "--motion", motion]
-    run([*cmd, "--out", str(out)], env, out.parent / f"{out.name}.prepare.log")
+    from elicit_diffrender.subject import load_subject
+
+    subject = load_subject(truth)
+    cam, frame = subject.input_camera, subject.input_frame
+    focal = float(subject.cameras[cam].K[0, 0])
+    cmd = [elicit, "prepare", str(subject.image_path(cam, frame)), "--mask", str(subject.mask_path(cam, frame))]
+    cmd += ["--focal", str(focal), "--motion", motion, "--out", str(out)]
+    run(cmd, env, out.parent / f"{out.name}.prepare.log")
 
 
 def main() -> int:

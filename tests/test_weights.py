@@ -30,7 +30,6 @@ def hub(tmp_path, monkeypatch):
 
     (tmp_path / f"{MODEL}.json").write_text(json.dumps(TINY))
     open_clip.add_model_config(tmp_path / f"{MODEL}.json")
-    monkeypatch.setitem(pretrained._PRETRAINED, MODEL, {TAG: pretrained._pcfg(hf_hub=f"{REPO}/")})
     torch.manual_seed(0)
     model = open_clip.create_model(MODEL, pretrained=None)
     blob = tmp_path / "served.safetensors"
@@ -42,7 +41,12 @@ def hub(tmp_path, monkeypatch):
     class Handler(http.server.BaseHTTPRequestHandler):
         def _head(self) -> bool:
             requests.append(self.path)
-            if self.path != f"/{REPO}/resolve/main/open_clip_model.safetensors":
+            served = (
+                f"/{REPO}/resolve/main/open_clip_model.safetensors",
+                f"/{etag}/tiny.safetensors",
+                f"/{'0' * 64}/bad.safetensors",
+            )
+            if self.path not in served:
                 self.send_response(404)
                 self.send_header("Content-Length", "0")
                 self.end_headers()
@@ -69,7 +73,15 @@ def hub(tmp_path, monkeypatch):
     monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hub-cache"))
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     monkeypatch.setenv("HF_HUB_DISABLE_XET", "1")
-    yield f"http://127.0.0.1:{server.server_address[1]}", model, requests
+    address = f"http://127.0.0.1:{server.server_address[1]}"
+    # Tags with only a URL (OpenAI's style: the file's SHA-256 in its address), good and corrupt.
+    urls = {"byurl": f"{address}/{etag}/tiny.safetensors", "badsha": f"{address}/{'0' * 64}/bad.safetensors"}
+    monkeypatch.setitem(
+        pretrained._PRETRAINED,
+        MODEL,
+        {TAG: pretrained._pcfg(hf_hub=f"{REPO}/"), **{t: pretrained._pcfg(url=u) for t, u in urls.items()}},
+    )
+    yield address, model, requests
     server.shutdown()
 
 
@@ -99,3 +111,17 @@ def test_fetch_failures_are_one_line(hub, capsys):
     assert main(["weights", "fetch", MODEL, "no-such-tag", "--endpoint", endpoint]) == 2
     err = capsys.readouterr().err.strip()
     assert "no pretrained tag 'no-such-tag'" in err and len(err.splitlines()) == 1
+
+
+def test_fetch_by_url_checks_the_address_sha256(hub, tmp_path, capsys):
+    assert main(["weights", "fetch", MODEL, "byurl"]) == 0
+    path = resolve_clip_weights(MODEL, "byurl")
+    assert (
+        path is not None
+        and path.startswith(str(tmp_path / "home" / ".cache" / "clip"))
+        and path in capsys.readouterr().out
+    )
+    assert main(["weights", "fetch", MODEL, "badsha"]) == 2
+    assert "does not match" in capsys.readouterr().err
+    assert resolve_clip_weights(MODEL, "badsha") is None
+    assert not list((tmp_path / "home" / ".cache" / "clip").glob(".*partial"))
