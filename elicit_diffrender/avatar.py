@@ -19,7 +19,7 @@ from .body import BodyModel, load_body
 from .body.template import vertex_normals
 from .cameras import Camera
 from .errors import ElicitError
-from .field import CanonicalField, MotionWeights, grid_points, grid_shape
+from .field import CanonicalField, MotionWeights, Room, grid_points, grid_shape, signed_distance
 from .geometry import axis_angle_to_matrix, rigid_inverse
 from .io import write_tensors
 from .skinning import inverse_lbs
@@ -37,6 +37,18 @@ BOUNDS_CELL = 0.04  # metres: lattice that bounds the posed body when occupancy 
 
 class AvatarError(ElicitError):
     """An avatar file that cannot be read."""
+
+
+def room_box(vertices: np.ndarray, normals: np.ndarray, room: Room, cell: float = BOUNDS_CELL) -> np.ndarray:
+    """(2, 3) the box around the canonical body and its ``room``: the body's box with ``room.margin`` on every side,
+    grown to the lattice points (``cell`` apart) within their room of the body."""
+    lo, hi = vertices.min(0) - room.margin, vertices.max(0) + room.margin
+    if room.widest > room.margin:
+        wide = np.stack([vertices.min(0) - room.widest, vertices.max(0) + room.widest])
+        pts = grid_points(torch.as_tensor(wide), grid_shape(torch.as_tensor(wide), cell)).reshape(-1, 3).numpy()
+        pts = pts[signed_distance(pts, vertices, normals) < room(pts)]
+        lo, hi = np.minimum(lo, pts.min(0) - cell), np.maximum(hi, pts.max(0) + cell)
+    return np.stack([lo, hi])
 
 
 def sample_grid(volume: torch.Tensor, box: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -84,7 +96,7 @@ class Avatar(nn.Module):
         body: BodyModel,
         body_spec: dict,
         voxel_size: float = 0.016,
-        box_margin: float = 0.10,
+        room: Room | float = 0.10,
         activation: str = "softplus",
         occupancy_cell: float = 0.04,
         weight_res: int = 32,
@@ -93,13 +105,16 @@ class Avatar(nn.Module):
     ) -> Avatar:
         """An avatar in ``body``'s canonical pose, its motion weights splatted from the body's skinning.
 
-        With ``body_prior`` the density starts as the canonical body and empty-space skipping is
-        limited to ``box_margin`` around it; without (the no-initialisation ablation) the grid starts
-        empty and every cell of the box may be filled.
+        ``room`` (a :class:`Room`, or one margin in metres) is how far outside the body the avatar may hold
+        density; the box bounds it. With ``body_prior`` the density starts as the canonical body and
+        empty-space skipping is limited to the room; without (the no-initialisation ablation) the grid
+        starts empty and every cell of the box may be filled.
         """
+        room = room if isinstance(room, Room) else Room(float(room))
         canon = body.pose(body.canonical_pose())
         verts = canon.vertices
-        box = torch.tensor(np.stack([verts.min(0) - box_margin, verts.max(0) + box_margin]), dtype=torch.float32)
+        normals = vertex_normals(verts, body.faces)
+        box = torch.tensor(room_box(verts, normals, room), dtype=torch.float32)
         keep = [body.joint_index(n) for n in body.reduced_joints]
         mapping = body.reduced_map()
         parents = [-1 if body.parents[j] < 0 else int(mapping[body.parents[j]]) for j in keep]
@@ -115,12 +130,16 @@ class Avatar(nn.Module):
             weight_res,
             config,
         )
-        normals = vertex_normals(verts, body.faces)
-        avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), margin=box_margin)
+        avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), room)
         if body_prior:
-            avatar.field.init_from_body(verts, normals, allowed_margin=box_margin)
+            avatar.field.init_from_body(verts, normals, room=room)
         avatar._body = body
         return avatar
+
+    @property
+    def sharpness(self) -> int:
+        """The inverse warp's blend exponent (``warp_sharpness``; avatars from before it existed used 1)."""
+        return int(self.config.get("warp_sharpness", 1))
 
     @property
     def device(self) -> torch.device:
@@ -206,7 +225,10 @@ class Avatar(nn.Module):
         box, occ = space if space is not None else self.observation_space(bones.detach())
         samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
         weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
-        x_c, fg = inverse_lbs(samples.positions, self.obs_to_canonical(bones), weights, self.motion_weights.box)
+        x_c, fg = inverse_lbs(
+            samples.positions, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness
+        )
+        fg = fg.clamp(max=1.0)  # a likelihood: bones whose candidates both carry weight must not add up past 1
         f = self.field
         out = composite(
             samples,

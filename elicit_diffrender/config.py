@@ -45,9 +45,12 @@ class ConfigError(ElicitError):
 class FitConfig:
     # --- avatar --------------------------------------------------------------------------------
     voxel_size: float = 0.016  # metres per canonical grid cell
-    box_margin: float = 0.10  # clothing room around the canonical body, metres
+    box_margin: float = 0.10  # room around the canonical body (metres), grown where the input mask reaches further
     density_activation: str = "softplus"  # "relu" (HumanNeRF) or "softplus" (kinder to a grid)
     weight_grid: int = 32  # motion-weight volume resolution (per axis)
+    # Exponent of the inverse warp's blend of bone candidates (1: HumanNeRF's weighted mean; larger: the
+    # dominant bone decides, so candidates of distant bones do not average into ghost limbs)
+    warp_sharpness: int = 4
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
@@ -129,6 +132,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (
     ("voxel_size", 1e-3, 1.0),
     ("box_margin", 0.0, 1.0),
     ("weight_grid", 2, 256),
+    ("warp_sharpness", 1, 16),
     ("occupancy_cell", 0.0, 1.0),
     ("samples_per_ray", 1, 4096),
     ("t_thresh", 0.0, 0.5),

@@ -7,6 +7,8 @@ units of optical depth per grid cell (the renderer scales by 1 / voxel size); co
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -36,6 +38,35 @@ def signed_distance(points: np.ndarray, vertices: np.ndarray, normals: np.ndarra
     return dist[:, 0] * np.where(sign == 0, 1.0, sign)
 
 
+def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray, k: int = 8) -> np.ndarray:
+    """(P, B) skinning weights at ``points``: the inverse-square-distance blend of the ``k`` nearest vertices'."""
+    dist, idx = cKDTree(vertices).query(points, k=k)
+    w = 1.0 / np.maximum(dist, 1e-3) ** 2
+    return np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
+
+
+@dataclass
+class Room:
+    """How far outside the canonical body the avatar may hold density (metres): ``margin`` everywhere, and
+    ``reach`` at the points ``extends`` selects (where the photo shows more than the body: hair, loose
+    clothing)."""
+
+    margin: float
+    reach: float = 0.0
+    extends: Callable[[np.ndarray], np.ndarray] | None = None
+
+    @property
+    def widest(self) -> float:
+        return max(self.margin, self.reach) if self.extends is not None else self.margin
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(P,) the room at each canonical point."""
+        out = np.full(len(points), self.margin)
+        if self.extends is not None and self.reach > self.margin:
+            out[self.extends(points)] = self.reach
+        return out
+
+
 class CanonicalField(nn.Module):
     """Density and colour on a grid over ``box`` with an occupancy grid for empty-space skipping."""
 
@@ -62,12 +93,12 @@ class CanonicalField(nn.Module):
         return F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
 
     def init_from_body(
-        self, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, allowed_margin: float | None = None
+        self, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, room: Room | None = None
     ) -> None:
         """Start from the body prior: opaque inside the canonical mesh, empty outside.
 
-        ``allowed_margin`` limits the occupancy grid to points within that distance of the body
-        (clothing room), so rays skip the rest of the box from the first step on.
+        ``room`` limits the occupancy grid to the points within its room of the body (clothing, hair),
+        so rays skip the rest of the box from the first step on.
         """
         pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
         sdf = signed_distance(pts, vertices, normals).reshape(self.shape)
@@ -75,10 +106,10 @@ class CanonicalField(nn.Module):
         t = np.clip(0.5 - sdf / (2 * self.voxel_size), 0.0, 1.0)
         with torch.no_grad():
             self.density.copy_(torch.as_tensor(EMPTY_DENSITY + t * (inside - EMPTY_DENSITY), dtype=torch.float32))
-        if allowed_margin is not None and self.occupancy_cell > 0:
+        if room is not None and self.occupancy_cell > 0:
             cells = grid_points(self.box.double(), tuple(self.occupancy.shape)).reshape(-1, 3).numpy()
-            d = signed_distance(cells, vertices, normals).reshape(self.occupancy.shape)
-            self.occupancy.copy_(torch.as_tensor(d < allowed_margin + self.occupancy_cell, dtype=torch.uint8))
+            allowed = signed_distance(cells, vertices, normals) < room(cells) + self.occupancy_cell
+            self.occupancy.copy_(torch.as_tensor(allowed.reshape(self.occupancy.shape), dtype=torch.uint8))
 
     @torch.no_grad()
     def set_colors_by_part(self, vertices: np.ndarray, vertex_parts: np.ndarray, part_colors: np.ndarray) -> None:
@@ -118,19 +149,14 @@ class MotionWeights(nn.Module):
         self.n_bones = n_bones
         self.logits = nn.Parameter(torch.zeros(n_bones + 1, resolution, resolution, resolution))
 
-    def init_from_body(
-        self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, margin: float = 0.10
-    ) -> None:
-        """Splat the body's (reduced) skinning weights: inverse-distance blend of the nearest vertices;
-        the background takes over beyond ``margin`` outside the surface."""
+    def init_from_body(self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, room: Room) -> None:
+        """Splat the body's (reduced) skinning weights (:func:`splat_weights`); the background takes over
+        beyond the ``room`` outside the surface."""
         shape = tuple(self.logits.shape[1:])
         pts = grid_points(self.box.double(), shape).reshape(-1, 3).numpy()
-        tree = cKDTree(vertices)
-        dist, idx = tree.query(pts, k=8)
-        w = 1.0 / np.maximum(dist, 1e-3) ** 2
-        bones = np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
+        bones = splat_weights(pts, vertices, weights)
         sdf = signed_distance(pts, vertices, normals)
-        fg = 1.0 / (1.0 + np.exp((sdf - margin) / 0.02))
+        fg = 1.0 / (1.0 + np.exp((sdf - room(pts)) / 0.02))
         probs = np.concatenate([bones * fg[:, None], (1.0 - fg)[:, None]], 1)
         logits = np.log(np.maximum(probs, 1e-8)).T.reshape(self.n_bones + 1, *shape)
         with torch.no_grad():

@@ -58,7 +58,12 @@ def composite_reference(
 
 
 def inverse_lbs_reference(
-    points: torch.Tensor, obs_to_canonical: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, eps: float = 1e-4
+    points: torch.Tensor,
+    obs_to_canonical: torch.Tensor,
+    weights: torch.Tensor,
+    box: torch.Tensor,
+    eps: float = 1e-4,
+    sharpness: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Same outputs as :func:`elicit_diffrender.skinning.inverse_lbs`."""
     y = torch.einsum("bij,pj->bpi", obs_to_canonical[:, :3, :3], points) + obs_to_canonical[:, None, :3, 3]
@@ -68,7 +73,9 @@ def inverse_lbs_reference(
     w = F.grid_sample(weights[:, None], coords, mode="bilinear", padding_mode="zeros", align_corners=True)
     w = w.reshape(weights.shape[0], -1) * ((norm >= -1) & (norm <= 1)).all(-1)
     fg = w.sum(0)
-    x_c = (w[..., None] * y).sum(0) / fg.clamp(min=eps)[:, None]
+    top = w.max(0).values.detach()  # x_c does not depend on a common scale of the weights
+    u = torch.where(top > 0, w / top.clamp(min=1e-300), torch.zeros_like(w)) ** sharpness
+    x_c = (u[..., None] * y).sum(0) / u.sum(0).clamp(min=eps)[:, None]
     return x_c, fg
 
 

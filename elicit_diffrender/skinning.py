@@ -18,6 +18,7 @@ from .kernels.skinning import (
 )
 
 MAX_BONES = 128
+MAX_SHARPNESS = 16
 
 
 def _warp_arguments(rot: torch.Tensor, trans: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, eps: float):
@@ -34,20 +35,21 @@ def _warp_arguments(rot: torch.Tensor, trans: torch.Tensor, weights: torch.Tenso
 
 class _InverseLBS(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, points, rot, trans, weights, box, eps):
+    def forward(ctx, points, rot, trans, weights, box, eps, sharpness):
         st, warp = _warp_arguments(rot, trans, weights, box, eps)
         out_x = torch.empty_like(points)
         out_fg = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
-        kernel = inverse_lbs_forward(warp_scalar(points.dtype), weights.shape[0])
+        out_norm = torch.empty(points.shape[0], 2, dtype=points.dtype, device=points.device)  # (max w, sum u)
+        kernel = inverse_lbs_forward(warp_scalar(points.dtype), weights.shape[0], sharpness)
         args = [to_warp(points, dtype=st.vec3), warp, to_warp(out_x, dtype=st.vec3), to_warp(out_fg)]
-        launch(kernel, points.shape[0], points.device, args)
-        ctx.save_for_backward(points, rot, trans, weights, out_x, out_fg)
-        ctx.box, ctx.eps = box, eps
+        launch(kernel, points.shape[0], points.device, [*args, to_warp(out_norm, dtype=st.vec2)])
+        ctx.save_for_backward(points, rot, trans, weights, out_x, out_norm)
+        ctx.box, ctx.eps, ctx.sharpness = box, eps, sharpness
         return out_x, out_fg
 
     @staticmethod
     def backward(ctx, g_x, g_fg):
-        points, rot, trans, weights, out_x, out_fg = ctx.saved_tensors
+        points, rot, trans, weights, out_x, out_norm = ctx.saved_tensors
         dtype, device = points.dtype, points.device
         n = points.shape[0]
         need_points = ctx.needs_input_grad[0]
@@ -68,7 +70,7 @@ class _InverseLBS(torch.autograd.Function):
             to_warp(points, dtype=st.vec3),
             warp,
             to_warp(out_x, dtype=st.vec3),
-            to_warp(out_fg),
+            to_warp(out_norm, dtype=st.vec2),
             to_warp(g_x, dtype=st.vec3),
             to_warp(g_fg),
             to_warp(grad_points, dtype=st.vec3),
@@ -78,7 +80,9 @@ class _InverseLBS(torch.autograd.Function):
             gw, gr, gt = bufs[part]
             return [*common, to_warp(gw), to_warp(gr, dtype=st.mat33), to_warp(gt, dtype=st.vec3)]
 
-        kernel = inverse_lbs_backward(warp_scalar(dtype), weights.shape[0], need_points, need_weights, need_bones)
+        kernel = inverse_lbs_backward(
+            warp_scalar(dtype), weights.shape[0], need_points, need_weights, need_bones, ctx.sharpness
+        )
         launch(kernel, n, device, per_part, parts)
         gw, gr, gt = bufs[0]
         for w2, r2, t2 in bufs[1:]:
@@ -92,6 +96,7 @@ class _InverseLBS(torch.autograd.Function):
             gw if need_weights else None,
             None,
             None,
+            None,
         )
 
 
@@ -101,15 +106,20 @@ def inverse_lbs(
     weights: torch.Tensor,
     box: torch.Tensor,
     eps: float = 1e-4,
+    sharpness: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp observation-space points to canonical space (HumanNeRF's inverse LBS).
+    """Warp observation-space points to canonical space (HumanNeRF's inverse LBS, optionally sharpened).
 
     Args:
         points: (P, 3) observation-space points.
         obs_to_canonical: (B, 4, 4) per-bone transforms ``G_canonical,b @ inverse(G_observed,b)``.
         weights: (B, X, Y, Z) motion weights, node-aligned over ``box`` in canonical space.
         box: (2, 3) min and max corners of the weight volume.
-        eps: floor of the weight sum in the normalisation.
+        eps: floor of the blend weights' sum in the normalisation.
+        sharpness: the integer exponent ``k`` (1..16) of the blend: each bone's candidate ``y_b`` counts
+            ``(w_b / max_b w_b)^k``; 1 is HumanNeRF's ``sum_b w_b y_b / sum_b w_b``, larger values let the
+            dominant bone decide where candidates of distant bones would average into a ghost
+            (``kernels/skinning.py``).
 
     Returns:
         ``x_c`` (P, 3) canonical points and ``fg`` (P,) the summed bone weights (foreground likelihood).
@@ -125,7 +135,10 @@ def inverse_lbs(
         raise ValueError(f"weight volume needs at least 2 nodes per axis, got {tuple(weights.shape[1:])}")
     rot = obs_to_canonical[:, :3, :3].contiguous()
     trans = obs_to_canonical[:, :3, 3].contiguous()
-    return _InverseLBS.apply(points.contiguous(), rot, trans, weights.contiguous(), box.detach().cpu(), float(eps))
+    if int(sharpness) != sharpness or not 1 <= sharpness <= MAX_SHARPNESS:
+        raise ValueError(f"sharpness must be an integer in 1..{MAX_SHARPNESS}, got {sharpness}")
+    args = (points.contiguous(), rot, trans, weights.contiguous(), box.detach().cpu(), float(eps), int(sharpness))
+    return _InverseLBS.apply(*args)
 
 
 class _ForwardLBS(torch.autograd.Function):

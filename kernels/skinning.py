@@ -2,20 +2,25 @@
 
 * ``inverse_lbs``: HumanNeRF's observation -> canonical warp. For each bone ``b`` the point is moved
   by that bone's observation->canonical transform, ``y_b = R_b x + t_b``, the bone's weight is read
-  from a canonical motion-weight volume at ``y_b``, and
-  ``x_c = sum_b w_b y_b / max(sum_b w_b, eps)``; ``fg = sum_b w_b`` is the foreground likelihood.
-  The bone count is a compile-time constant of each kernel instance.
+  from a canonical motion-weight volume at ``y_b``, and the candidates are blended with weights
+  sharpened by the integer exponent ``k``: ``x_c = sum_b u_b y_b / sum_b u_b`` with ``u_b = (w_b / m)^k``,
+  ``m = max_b w_b`` (``k = 1``: HumanNeRF's ``sum_b w_b y_b / sum_b w_b``). ``fg = sum_b w_b`` is the
+  foreground likelihood. Dividing by ``m`` changes nothing in ``x_c`` but keeps ``sum_b u_b >= 1``
+  (no shrinking towards the origin where all weights are small); ``m`` is kept by a running rescale
+  in one pass over the bones. The bone count and ``k`` are compile-time constants of each kernel instance.
 * ``forward_lbs``: mesh vertices, canonical -> posed, with sparse per-vertex bone weights.
 
 Adjoints are hand-written; which gradients to compute is a compile-time constant of each backward
 kernel instance, so only those asked for cost anything. Every kernel takes the first item of its
 launch (``i0``) so that a CPU launch can be split across threads.
 
-Inverse-LBS backward: with ``s = sum_b w_b``, ``acc = sum_b w_b y_b`` and ``x_c = acc / max(s, eps)``,
-the incoming ``g_x`` and ``g_fg`` give ``dL/dacc = g_x / max(s, eps)`` and ``dL/ds = g_fg - g_x . x_c /
-s`` (the second part only where ``s > eps``), so ``dL/dw_b = dL/dacc . y_b + dL/ds`` (scattered to the 8
-weight nodes around ``y_b``) and ``dL/dy_b = w_b dL/dacc + dL/dw_b grad w_b(y_b)``, which ``y_b = R_b x +
-t_b`` carries to the bone (``outer(dL/dy_b, x)``, ``dL/dy_b``) and to the point (``R_b^T dL/dy_b``).
+Inverse-LBS backward: ``x_c`` does not change when every ``w_b`` is scaled alike, so ``m`` is a constant
+of the derivative. With ``su = sum_b u_b``, ``acc = sum_b u_b y_b`` and ``x_c = acc / max(su, eps)``, the
+incoming ``g_x`` and ``g_fg`` give ``dL/dacc = g_x / max(su, eps)`` and ``dL/dsu = -g_x . x_c / su`` (only
+where ``su > eps``), so ``dL/du_b = dL/dacc . y_b + dL/dsu`` and ``dL/dw_b = dL/du_b k u_b / w_b + g_fg``
+(``k (w_b / m)^(k - 1) / m``; scattered to the 8 weight nodes around ``y_b``), and ``dL/dy_b = u_b dL/dacc
++ dL/dw_b grad w_b(y_b)``, which ``y_b = R_b x + t_b`` carries to the bone (``outer(dL/dy_b, x)``,
+``dL/dy_b``) and to the point (``R_b^T dL/dy_b``).
 """
 
 import functools
@@ -45,16 +50,40 @@ def skinning_types(dtype) -> SimpleNamespace:
         frame: g.GridFrame
         eps: dtype
 
-    return SimpleNamespace(vec3=vec3, mat33=mat33, grid=g, Warp=Warp)
+    vec2 = wp.types.vector(2, dtype)
+    return SimpleNamespace(vec2=vec2, vec3=vec3, mat33=mat33, grid=g, Warp=Warp)
 
 
 @functools.cache
-def inverse_lbs_forward(dtype, n_bones: int):
-    """Inverse-LBS forward for ``n_bones`` bones (1..128) and scalar type ``dtype``."""
+def sharpen_funcs(dtype, k: int) -> SimpleNamespace:
+    """``r^k`` and its derivative ``k r^(k-1)`` for a compile-time integer ``k`` >= 1, by multiplication."""
+    K = k
+
+    @wp.func
+    def power(r: dtype):
+        out = dtype(1.0)
+        for _ in range(wp.static(K)):
+            out = out * r
+        return out
+
+    @wp.func
+    def power_grad(r: dtype):
+        out = dtype(K)
+        for _ in range(wp.static(K - 1)):
+            out = out * r
+        return out
+
+    return SimpleNamespace(power=power, power_grad=power_grad)
+
+
+@functools.cache
+def inverse_lbs_forward(dtype, n_bones: int, sharpness: int = 1):
+    """Inverse-LBS forward for ``n_bones`` bones (1..128), blend exponent ``sharpness`` and scalar type ``dtype``."""
     if not 1 <= n_bones <= 128:
         raise ValueError(f"n_bones must be in 1..128, got {n_bones}")
     st = skinning_types(dtype)
     g, vec3 = st.grid, st.vec3
+    sh = sharpen_funcs(dtype, sharpness)
     NB = n_bones
 
     @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
@@ -64,29 +93,43 @@ def inverse_lbs_forward(dtype, n_bones: int):
         warp: st.Warp,
         out_x: wp.array(dtype=vec3),
         out_fg: wp.array(dtype=dtype),
+        out_norm: wp.array(dtype=st.vec2),
     ):
         i = wp.tid() + i0
         x = points[i]
         acc = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         s = dtype(0.0)
+        su = dtype(0.0)
+        m = dtype(0.0)
         for b in range(NB):
             y = warp.rot[b] * x + warp.trans[b]
             ok, base, frac = g.locate(y, warp.frame)
             if ok:
                 w = g.lerp4(warp.weights, b, base, g.corner_weights(frac))
-                acc += w * y
                 s += w
-        out_x[i] = acc / wp.max(s, warp.eps)
+                if w > m:  # a new largest weight: rescale what was summed relative to it
+                    if m > dtype(0.0):
+                        r = sh.power(m / w)
+                        acc *= r
+                        su *= r
+                    m = w
+                if m > dtype(0.0):
+                    u = sh.power(w / m)
+                    acc += u * y
+                    su += u
+        out_x[i] = acc / wp.max(su, warp.eps)
         out_fg[i] = s
+        out_norm[i] = st.vec2(m, su)
 
     return inverse_lbs_fwd
 
 
 @functools.cache
-def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones: bool):
+def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones: bool, sharpness: int = 1):
     """Inverse-LBS backward (see the module docstring), computing the gradients for ``points``,
     ``weights`` and ``bones`` (rotations and translations) that are asked for."""
     st = skinning_types(dtype)
+    sh = sharpen_funcs(dtype, sharpness)
     g, vec3, mat33 = st.grid, st.vec3, st.mat33
     NB, POINTS, WEIGHTS, BONES = n_bones, points, weights, bones
 
@@ -96,7 +139,7 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
         points: wp.array(dtype=vec3),
         warp: st.Warp,
         out_x: wp.array(dtype=vec3),
-        out_fg: wp.array(dtype=dtype),
+        out_norm: wp.array(dtype=st.vec2),
         grad_x: wp.array(dtype=vec3),
         grad_fg: wp.array(dtype=dtype),
         grad_points: wp.array(dtype=vec3),
@@ -106,24 +149,26 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
     ):
         i = wp.tid() + i0
         x = points[i]
-        # The forward outputs give the weighted sum back: acc = x_c * max(s, eps).
-        s = out_fg[i]
-        ms = wp.max(s, warp.eps)
-        gacc = grad_x[i] / ms
-        gs = grad_fg[i]
-        if s > warp.eps:
-            gs -= wp.dot(grad_x[i], out_x[i]) / ms
+        m = out_norm[i][0]
+        su = out_norm[i][1]
+        msu = wp.max(su, warp.eps)
+        gacc = grad_x[i] / msu
+        gsu = dtype(0.0)
+        if su > warp.eps:
+            gsu = -wp.dot(grad_x[i], out_x[i]) / msu
+        gfg = grad_fg[i]
         gp = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         for b in range(NB):
             y = warp.rot[b] * x + warp.trans[b]
             ok, base, frac = g.locate(y, warp.frame)
-            if ok:
+            if ok and m > dtype(0.0):
                 w, gfrac = g.value_and_grad(g.corners4(warp.weights, b, base), frac)
-                gw = wp.dot(gacc, y) + gs
+                u = sh.power(w / m)
+                gw = (wp.dot(gacc, y) + gsu) * sh.power_grad(w / m) / m + gfg
                 if wp.static(WEIGHTS):
                     g.scatter4(grad_weights, b, base, g.corner_weights(frac), gw)
                 if wp.static(POINTS or BONES):
-                    gy = w * gacc + gw * g.frac_to_world(gfrac, warp.frame)
+                    gy = u * gacc + gw * g.frac_to_world(gfrac, warp.frame)
                     if wp.static(BONES):
                         wp.atomic_add(grad_rot, b, wp.outer(gy, x))
                         wp.atomic_add(grad_trans, b, gy)

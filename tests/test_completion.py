@@ -1,4 +1,5 @@
-"""The mirror completion (weights-free semantic prior): visibility, pairs, and a term that moves only unseen cells."""
+"""The mirror completion (weights-free semantic prior): visibility, the photo's light, sources, and a term that moves
+only unseen cells, relit."""
 
 import numpy as np
 import torch
@@ -9,7 +10,8 @@ from elicit_diffrender.body.template import vertex_normals
 from elicit_diffrender.cameras import look_at
 from elicit_diffrender.field import CanonicalField, grid_points
 from elicit_diffrender.fit.completion import MirrorCompletion, visible_vertices
-from elicit_diffrender.mesh_render import MeshRenderer
+from elicit_diffrender.fit.shading import Shading, estimate_shading
+from elicit_diffrender.mesh_render import MeshAppearance, MeshRenderer
 
 
 def _canonical(anny_body):
@@ -40,17 +42,23 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
     field = CanonicalField(box, 0.04)
     pairs = MirrorCompletion.build(field, verts, normals, parts, seen, margin=0.05)
-    assert 0 < len(pairs) <= pairs.unseen
+    assert len(pairs) == pairs.unseen > 0  # every part has seen vertices, so every unseen cell has a source
+    assert sum(pairs.rule_counts.values()) == len(pairs) and pairs.rule_counts["nearest seen"] == 0
+    assert torch.equal(pairs.gains, torch.ones(len(pairs)))  # no light given: nothing is relit
     cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()[pairs.cells.numpy()]
     src = pairs.sources.numpy()
-    # Front/back mirror images: same x and y, and the source is in front of the cell.
-    front_back = np.abs(src[:, 0] - cells[:, 0]) < 1e-6
-    assert front_back.mean() > 0.8
-    assert (src[front_back, 2] > cells[front_back, 2]).all()
-    # The head is never mirrored front to back (its back is not a face).
     head = PART_NAMES.index("head")
     _, nearest = cKDTree(verts).query(cells)
+    # Front/back mirror images: same x and y, and the source is in front of the cell.
+    front_back = (np.abs(src[:, 0] - cells[:, 0]) < 1e-6) & (np.abs(src[:, 1] - cells[:, 1]) < 1e-6)
+    assert front_back[parts[nearest] != head].mean() > 0.8
+    assert (src[front_back, 2] > cells[front_back, 2]).all()
+    # The head is never mirrored front to back (its back is not a face): its cells copy a seen vertex of its crown.
     assert not (front_back & (parts[nearest] == head) & (np.abs(src[:, 2] - cells[:, 2]) > 1e-6)).any()
+    assert pairs.rule_counts["crown"] > 0
+    head_src = cKDTree(verts).query(src[parts[nearest] == head])
+    assert (head_src[0] < 1e-6).all() and (parts[head_src[1]] == head).all() and seen[head_src[1]].all()
+    assert (normals[head_src[1], 1] > 0.5).all()
 
     # Front red, back blue (per part): the term pulls the back towards red and never touches the front.
     all_cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
@@ -61,16 +69,63 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
         field.color[..., 2] = torch.where(front, -3.0, 3.0)
     before = field.color.detach().clone()
     opt = torch.optim.Adam([field.color], lr=0.2)
-    first = float(pairs.loss(field).detach())
-    for _ in range(60):
-        loss = pairs.loss(field)
+    first = float(pairs.loss(field, 0).detach())
+    for step in range(60):
+        loss = pairs.loss(field, step)
         opt.zero_grad()
         loss.backward()
         opt.step()
-    assert float(pairs.loss(field).detach()) < 0.2 * first
+    assert float(pairs.loss(field, 60).detach()) < 0.2 * first
     changed = (field.color.detach() - before).abs().sum(-1).reshape(-1) > 0
     assert changed.any() and not changed[~torch.isin(torch.arange(changed.numel()), pairs.cells)].any()
     moved = torch.sigmoid(field.color.detach().reshape(-1, 3)[pairs.cells])
     _, src_owner = cKDTree(verts).query(src)
     deep = torch.as_tensor(src[:, 2] - centre_z[parts[src_owner]] > 2 * field.voxel_size)  # well inside the red
     assert deep.sum() > 100 and (moved[deep, 0] > 0.5).float().mean() > 0.9  # the back turned red
+
+
+def _lit_body(anny_body, light: Shading, size: int = 384):
+    """A front view of the posed body whose colour is a per-part albedo times ``light`` at its normals."""
+    body = anny_body.pose(anny_body.zero_pose())
+    verts, normals = body.vertices, vertex_normals(body.vertices, anny_body.faces)
+    albedo = np.random.default_rng(3).uniform(0.25, 0.8, (len(PART_NAMES), 3))[anny_body.vertex_parts()]
+    colors = albedo * light(normals)[:, None] / (1 + light.ratio)
+    centre = verts.mean(0)
+    cam = look_at(centre + np.array([0.0, 0.0, 3.0]), centre, np.array([0.0, 1.0, 0.0]), 420.0, size, size)
+    renderer = MeshRenderer(anny_body.faces, MeshAppearance(vertex_colors=colors))
+    out = renderer.render(verts, [cam], ("color", "depth"), spp=4)
+    depth = out["depth"][0]
+    seen = visible_vertices(verts, normals, cam, depth, depth > 0)
+    return out["color"][0], depth > 0, cam, verts, normals, seen
+
+
+def test_the_photos_light_is_recovered_from_the_body_it_shows(anny_body):
+    truth = Shading(np.array([0.4, 0.7, 0.6]) / np.linalg.norm([0.4, 0.7, 0.6]), 1.0)
+    image, person, cam, verts, normals, seen = _lit_body(anny_body, truth)
+    est = estimate_shading(image, person, cam, verts, normals, seen)
+    assert np.degrees(np.arccos(np.clip(est.direction @ truth.direction, -1, 1))) < 12.0
+    assert 0.6 < est.ratio < 1.5
+    # Under flat light there is nothing to find.
+    flat = estimate_shading(*_lit_body(anny_body, Shading(truth.direction, 0.0)))
+    assert flat.ratio < 0.1
+
+
+def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):
+    verts, normals = _canonical(anny_body)
+    parts = anny_body.vertex_parts()
+    centre_z = np.array([verts[parts == k, 2].mean() for k in range(len(PART_NAMES))])
+    seen = verts[:, 2] > centre_z[parts]
+    light = Shading(np.array([0.0, 0.0, 1.0]), 1.0)  # from the front
+    box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
+    field = CanonicalField(box, 0.04)
+    with torch.no_grad():
+        field.color.fill_(1.0)  # everything sigmoid(1) = 0.73 grey
+    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, 0.05, light(normals))
+    target = pairs.targets(field)
+    cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()[pairs.cells.numpy()]
+    _, owner = cKDTree(verts).query(cells)
+    back = normals[owner, 2] < -0.5
+    assert back.sum() > 50
+    # A back cell copies a front source lit 1 + cos, so its target is darker by that factor.
+    assert (pairs.gains[torch.as_tensor(back)] < 0.8).float().mean() > 0.9
+    assert torch.allclose(target, (torch.sigmoid(torch.tensor(1.0)) * pairs.gains[:, None]).clamp(max=1.0), atol=1e-6)

@@ -188,3 +188,46 @@ def test_merge_bones():
 def test_bone_count_limits():
     with pytest.raises(ValueError, match="1..128"):
         inverse_lbs(torch.zeros(1, 3), torch.eye(4).repeat(129, 1, 1), torch.zeros(129, 2, 2, 2), WBOX.float())
+
+
+@pytest.mark.parametrize("sharpness", [2, 6])
+def test_sharpened_warp_matches_reference_values_and_gradients(sharpness):
+    gen = torch.Generator().manual_seed(13)
+    pts = (0.5 * torch.randn(800, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    mats = random_transforms(24, seed=14).requires_grad_()
+    weights = random_weights(24, res=(8, 8, 8), seed=15).requires_grad_()
+    ours = inverse_lbs(pts, mats, weights, WBOX, sharpness=sharpness)
+    ref = inverse_lbs_reference(pts, mats, weights, WBOX, sharpness=sharpness)
+    torch.testing.assert_close(ours[0], ref[0], atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(ours[1], ref[1], atol=1e-12, rtol=1e-10)
+    wx = torch.randn(800, 3, generator=gen, dtype=torch.float64)
+    wfg = torch.randn(800, generator=gen, dtype=torch.float64)
+    g1 = torch.autograd.grad((ours[0] * wx).sum() + (ours[1] * wfg).sum(), (pts, mats, weights))
+    g2 = torch.autograd.grad((ref[0] * wx).sum() + (ref[1] * wfg).sum(), (pts, mats, weights))
+    for a, b in zip(g1, g2, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-8)
+    small = (pts[:10].detach().requires_grad_(), mats.detach()[:3].requires_grad_())
+    w3 = random_weights(3, res=(4, 4, 4), seed=16).requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda p, m, w: inverse_lbs(p, m, w, WBOX, sharpness=sharpness), (*small, w3), eps=1e-6, atol=1e-6, rtol=1e-5
+    )
+
+
+def test_sharpening_lets_the_dominant_bone_decide():
+    """Two bones whose candidates land far apart: HumanNeRF's blend puts the point between them (a ghost where
+    neither bone has anything); a sharpened blend keeps it at the dominant bone's candidate."""
+    mats = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    mats[1, :3, 3] = torch.tensor([0.8, 0.0, 0.0], dtype=torch.float64)  # bone 1 moves points 0.8 along x
+    weights = torch.zeros(2, 9, 9, 9, dtype=torch.float64)
+    weights[0] = 0.9  # bone 0 dominates near the origin
+    weights[1] = 0.25
+    pt = torch.tensor([[-0.4, 0.0, 0.0]], dtype=torch.float64)  # candidates at x = -0.4 (bone 0) and 0.4 (bone 1)
+    plain, fg = inverse_lbs(pt, mats, weights, WBOX)
+    sharp, fg_sharp = inverse_lbs(pt, mats, weights, WBOX, sharpness=8)
+    assert abs(float(plain[0, 0]) - (-0.4 * 0.9 + 0.4 * 0.25) / 1.15) < 1e-12  # between the two
+    assert abs(float(sharp[0, 0]) + 0.4) < 1e-4
+    torch.testing.assert_close(fg, fg_sharp)
+    with pytest.raises(ValueError, match="sharpness"):
+        inverse_lbs(pt, mats, weights, WBOX, sharpness=0)
+    with pytest.raises(ValueError, match="sharpness"):
+        inverse_lbs(pt, mats, weights, WBOX, sharpness=2.5)

@@ -1,18 +1,25 @@
-"""The weights-free semantic prior: colour what the input camera does not see from its mirror image.
+"""The weights-free semantic prior: colour what the input camera does not see from what it sees, relit.
 
 One photo shows one side of a person. Without CLIP weights nothing here knows what a back looks
 like, but a body is close to symmetric: the back of a sleeve has the colour of its front, the left
 leg that of the right. Every colour cell of the canonical grid near the body whose nearest body
-vertex the input camera does not see gets a *source* point that it does see: its mirror image
-through its body part's frontal plane (front <-> back; not for the head, whose back is hair, not a
-face), else through the body's sagittal plane (left <-> right), else through both, whichever's
-nearest body vertex is seen first. Cells without a seen source keep what they have. The term
+vertex the input camera does not see gets a *source* point that it does see, by the first rule
+that finds one: its mirror image through its body part's frontal plane (front <-> back; not for
+the head, whose back is hair, not a face), through the body's sagittal plane (left <-> right),
+through both; the head's back instead copies the nearest seen vertex of its crown (hair, a hat or
+bare skin, like the top of the head, not the face); else the nearest seen vertex of the cell's own
+part, else the nearest seen vertex. The photo's light (``fit.shading``, fitted to the seen
+body) says how much darker or brighter the cell's side is than its source's, so the target is
 
-    L = mean_c || sigmoid(c_cell) - sigmoid(blur(c)(source_cell)) ||^2
+    t_c = sigmoid(blur(c)(source_c)) * S(n_c) / S(n_source)
 
-over every unseen cell with a source pulls it towards the detached colour that the fit gives its
-source (which the input photo trains), blurred: the mean of trilinear look-ups at the source and
-six points ``BLUR_VOXELS`` away. No render, no encoder.
+with ``S`` evaluated at the input-pose normals of the two points' nearest body vertices, and the term
+
+    L = mean_c || sigmoid(c_cell) - t_c ||^2
+
+pulls every unseen cell towards it. ``blur`` is the mean of trilinear look-ups at the source and six
+points ``BLUR_VOXELS`` away; the targets are detached and recomputed every ``REFRESH`` steps (the
+seen side they copy changes slowly). No render, no encoder.
 
 A vertex is seen when it faces the input camera, projects inside the input mask and lies within
 ``DEPTH_TOLERANCE`` of the depth of the body's own surface there.
@@ -34,7 +41,9 @@ from ..field import CanonicalField, grid_points, signed_distance
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
 BLUR_VOXELS = 1.5  # spacing of the blur stencil at the source
-NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front
+NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they copy their crown
+CROWN_UP = 0.5  # a vertex whose canonical normal's up component exceeds this is on the crown
+REFRESH = 10  # steps between recomputations of the targets
 
 
 def visible_vertices(
@@ -57,9 +66,12 @@ def visible_vertices(
 @dataclass
 class MirrorCompletion:
     cells: torch.Tensor  # (N,) flat indices of unseen colour cells
-    sources: torch.Tensor  # (N, 3) canonical positions of their seen mirror images
-    rule_counts: dict[str, int]  # how many cells each mirror gave a source
-    unseen: int  # unseen cells near the body, with a source or without
+    sources: torch.Tensor  # (N, 3) canonical positions of the seen points they copy
+    gains: torch.Tensor  # (N,) S(n_cell) / S(n_source): the photo's light on the cell's side against the source's
+    rule_counts: dict[str, int]  # how many cells each rule gave a source
+    unseen: int  # unseen cells near the body
+    _target: torch.Tensor | None = None
+    _key: int = -1
 
     @classmethod
     def build(
@@ -70,17 +82,20 @@ class MirrorCompletion:
         vertex_parts: np.ndarray,
         seen: np.ndarray,
         margin: float,
+        light: np.ndarray | None = None,
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
         ``vertex_parts``) and which of its vertices the input camera sees; cells up to ``margin`` outside
-        the body count."""
+        the body count. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without it
+        the gains are 1."""
         pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
         sdf = signed_distance(pts, canonical, normals)
         near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & (sdf < margin))[0]
         tree = cKDTree(canonical)
         _, idx = tree.query(pts[near])
         hidden = ~seen[idx]
-        cells, p, part = near[hidden], pts[near[hidden]], vertex_parts[idx[hidden]]
+        cells, p, owner = near[hidden], pts[near[hidden]], idx[hidden]
+        part = vertex_parts[owner]
         centre_z = np.zeros(len(PART_NAMES))
         for k in np.unique(vertex_parts):
             centre_z[k] = canonical[vertex_parts == k, 2].mean()
@@ -91,6 +106,7 @@ class MirrorCompletion:
         both = np.stack([left_right[:, 0], p[:, 1], front_back[:, 2]], 1)
         mirrored_ok = ~np.isin(part, [PART_NAMES.index(n) for n in NO_FRONT_BACK])
         source = np.full_like(p, np.nan)
+        source_vertex = np.zeros(len(cells), dtype=np.int64)
         counts = {}
         for name, candidate, allowed in (
             ("front/back", front_back, mirrored_ok),
@@ -98,18 +114,37 @@ class MirrorCompletion:
             ("both", both, mirrored_ok),
         ):
             free = np.nonzero(np.isnan(source[:, 0]) & allowed)[0]
-            if free.size == 0:
-                counts[name] = 0
-                continue
-            _, cand = tree.query(candidate[free])
+            _, cand = tree.query(candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
             ok = seen[cand]
             source[free[ok]] = candidate[free[ok]]
+            source_vertex[free[ok]] = cand[ok]
             counts[name] = int(ok.sum())
+        # Then the nearest seen vertex of a pool: for the head its crown (the back of a head is hair, a hat or
+        # bare skin like its top, not the face), then the cell's own part, then any part.
+        crown = seen & (normals[:, 1] > CROWN_UP)
+        no_mirror = [PART_NAMES.index(n) for n in NO_FRONT_BACK]
+        for name, pool_of in (
+            ("crown", lambda k: crown & (vertex_parts == k) if k in no_mirror else None),
+            ("nearest seen of its part", lambda k: seen & (vertex_parts == k)),
+            ("nearest seen", lambda k: seen),
+        ):
+            counts[name] = 0
+            free = np.nonzero(np.isnan(source[:, 0]))[0]
+            for k in np.unique(part[free]):
+                pool = pool_of(int(k))
+                if pool is None or not pool.any():
+                    continue
+                rows, pool = free[part[free] == k], np.nonzero(pool)[0]
+                _, j = cKDTree(canonical[pool]).query(p[rows])
+                source[rows], source_vertex[rows] = canonical[pool[j]], pool[j]
+                counts[name] += int(rows.size)
         has = ~np.isnan(source[:, 0])
+        gains = np.ones(len(cells)) if light is None else light[owner] / light[source_vertex]
         device = field.color.device
         return cls(
             torch.as_tensor(cells[has], dtype=torch.long, device=device),
             torch.as_tensor(source[has], dtype=torch.float32, device=device),
+            torch.as_tensor(gains[has], dtype=torch.float32, device=device),
             counts,
             int(cells.size),
         )
@@ -117,16 +152,29 @@ class MirrorCompletion:
     def __len__(self) -> int:
         return int(self.cells.numel())
 
-    def loss(self, field: CanonicalField) -> torch.Tensor:
-        """The term over every unseen cell with a source."""
-        if len(self) == 0:
-            return torch.zeros((), device=field.color.device)
+    @torch.no_grad()
+    def targets(self, field: CanonicalField) -> torch.Tensor:
+        """(N, 3) the relit, blurred colour at every cell's source."""
         step = BLUR_VOXELS * field.voxel_size
         eye = torch.eye(3, device=self.sources.device)
         offsets = torch.cat([torch.zeros(1, 3, device=eye.device), step * eye, -step * eye])
         stencil = (self.sources[:, None, :] + offsets[None]).reshape(-1, 3)
-        with torch.no_grad():
-            logits = sample_grid(field.color.detach().permute(3, 0, 1, 2), field.box, stencil)
-            target = torch.sigmoid(logits.reshape(len(self), offsets.shape[0], 3).mean(1))
+        logits = sample_grid(field.color.detach().permute(3, 0, 1, 2), field.box, stencil)
+        color = torch.sigmoid(logits.reshape(len(self), offsets.shape[0], 3).mean(1))
+        return (color * self.gains[:, None]).clamp(0.0, 1.0)
+
+    def state(self) -> dict:
+        """The current targets (a resumed fit continues with the same ones)."""
+        return {} if self._target is None else {"key": self._key, "target": self._target}
+
+    def load_state(self, state: dict) -> None:
+        self._target, self._key = (state["target"], int(state["key"])) if state else (None, -1)
+
+    def loss(self, field: CanonicalField, step: int) -> torch.Tensor:
+        """The term over every unseen cell with a source; targets are recomputed every ``REFRESH`` steps."""
+        if len(self) == 0:
+            return torch.zeros((), device=field.color.device)
+        if self._target is None or step // REFRESH != self._key:
+            self._target, self._key = self.targets(field), step // REFRESH
         color = torch.sigmoid(field.color.reshape(-1, 3)[self.cells])
-        return ((color - target) ** 2).sum(-1).mean()
+        return ((color - self._target) ** 2).sum(-1).mean()

@@ -83,15 +83,21 @@ class Objective:
         view = self.views.input
         canon = body.pose(body.canonical_pose())
         normals = vertex_normals(canon.vertices, body.faces)
-        pairs = MirrorCompletion.build(self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin)
+        light = view.shading(view.normals)
+        pairs = MirrorCompletion.build(
+            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin, light
+        )
         rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
         log.info(
-            "semantic prior: %s; %.0f%% of the body's vertices seen; %d of %d unseen colour cells have a source (%s)",
+            "semantic prior: %s; %.0f%% of the body's vertices seen; %d of %d unseen colour cells have a source (%s); "
+            "the photo's light: key/ambient %.2f from %s",
             FALLBACK_NAME,
             100 * view.seen.mean(),
             len(pairs),
             pairs.unseen,
             rules,
+            view.shading.ratio,
+            np.round(view.shading.direction, 2).tolist(),
         )
         return pairs
 
@@ -207,7 +213,7 @@ class Objective:
             image = crop_image(source.image, window, size)[None]
         return image, crop_image(self._tensor(mask)[None], window, size)
 
-    def regularisers(self, stage: int) -> Terms:
+    def regularisers(self, stage: int, step: int) -> Terms:
         """Grid smoothness (both stages) and sparsity outside the body (stage 2), on one random block."""
         block = self.field.random_block(generator=self.streams.blocks)
         terms: Terms = {}
@@ -216,5 +222,5 @@ class Objective:
         if stage == 2 and self.on("sparsity"):
             terms["sparsity"] = self.field.sparsity_loss(block, self.outside_body)
         if stage == 2 and self.completion is not None:
-            terms["mirror"] = self.completion.loss(self.field)
+            terms["mirror"] = self.completion.loss(self.field, step)
         return terms

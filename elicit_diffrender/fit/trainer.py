@@ -22,6 +22,7 @@ from .checkpoint import CHECKPOINT, FitError, load_optimizer_state, optimizer_st
 from .guard import EmptyRenderGuard
 from .objective import Objective, Terms
 from .render import PoseRenderer
+from .room import input_room
 from .streams import RandomStreams
 from .views import FitViews
 
@@ -76,11 +77,16 @@ class Trainer:
         self.stats = RunStats()
         self.stage, self.step, self.lr_scale = 1, 0, 1.0
         body = subject.body
+        self.room = input_room(subject, cfg.box_margin)
+        if self.room.widest > cfg.box_margin:
+            log.info(
+                "room: the input mask reaches %.2f m from the body (box_margin %.2f m)", self.room.reach, cfg.box_margin
+            )
         self.avatar = Avatar.from_body(
             body,
             subject.body_spec,
             cfg.voxel_size,
-            cfg.box_margin,
+            self.room,
             cfg.density_activation,
             cfg.occupancy_cell,
             cfg.weight_grid,
@@ -133,6 +139,7 @@ class Trainer:
             "streams": self.streams.state(),
             "stats": asdict(self.stats),
             "skipped_references": self.objective.skipped_references,
+            "completion": self.objective.completion.state() if self.objective.completion is not None else {},
         }
         save_checkpoint(self.run_dir, state)
 
@@ -147,6 +154,8 @@ class Trainer:
             self.streams.load_state(state["streams"])
             self.stats = RunStats(**state["stats"])
             self.objective.skipped_references = int(state["skipped_references"])
+            if self.objective.completion is not None:
+                self.objective.completion.load_state(state.get("completion", {}))
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise FitError(
                 f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {exc}); "
@@ -207,7 +216,7 @@ class Trainer:
             terms = self.objective.novel_view()
         else:
             terms = self.objective.input_patch()
-        return None if terms is None else {**terms, **self.objective.regularisers(stage)}
+        return None if terms is None else {**terms, **self.objective.regularisers(stage, self.step)}
 
     def run_stage(self, stage: int, steps: int) -> None:
         cfg = self.cfg
@@ -287,6 +296,8 @@ class Trainer:
             "recoveries": self.stats.recoveries,
             "final_losses": self.stats.losses,
             "semantic_references_skipped": self.objective.skipped_references,
+            "input_light": self.views.input.shading.to_dict(),
+            "room_m": round(self.room.widest, 4),
             "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
             "device": str(self.device),
             "torch_threads": torch.get_num_threads(),

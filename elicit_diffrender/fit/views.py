@@ -24,6 +24,7 @@ from ..rigs import place_cameras, read_rig, ring_cameras, shipped_rig_path
 from ..sampling import body_yaw
 from ..subject import Subject, SubjectError
 from .completion import visible_vertices
+from .shading import Shading, estimate_shading
 
 RING_SIZE = 512  # image size of the shipped ring rig
 PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
@@ -126,6 +127,8 @@ class InputView:
     person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
     labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
     seen: np.ndarray  # (V,) bool: the body vertices the camera sees
+    normals: np.ndarray  # (V, 3) the posed body's vertex normals (world)
+    shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
 
     @classmethod
     def load(cls, subject: Subject, scale: float, renderer: MeshRenderer, device: torch.device) -> InputView:
@@ -140,7 +143,10 @@ class InputView:
         person = mask.numpy() > 0.5
         normals = vertex_normals(posed.vertices, subject.body.faces)
         seen = visible_vertices(posed.vertices, normals, camera, out["depth"][0], person)
-        return cls(camera, image.to(device), mask.to(device), person, out["labels"][0], seen)
+        full = subject.cameras[subject.input_camera]  # the light is fitted to the photo at full resolution
+        photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
+        shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
+        return cls(camera, image.to(device), mask.to(device), person, out["labels"][0], seen, normals, shading)
 
     def part_colors(self) -> np.ndarray:
         """(P, 3) mean colour of every body part in the image (the whole person's where a part is unseen)."""
