@@ -142,7 +142,9 @@ class MeshRenderer:
                 colors = np.ascontiguousarray(app.vertex_colors, dtype=np.float32).ravel()
                 mesh.add_attribute("vertex_color", 3, mi.Float(colors))
             reflectance = {"type": "rgb", "value": [0.0, 0.0, 0.0]} if emissive else self._reflectance()
-            mesh.set_bsdf(mi.load_dict({"type": "diffuse", "reflectance": reflectance}))
+            # Two-sided: a folded garment (a synthetic skirt) shows its inside lit, not black.
+            diffuse = {"type": "diffuse", "reflectance": reflectance}
+            mesh.set_bsdf(mi.load_dict({"type": "twosided", "material": diffuse}))
             self._meshes[emissive] = (mesh, params)
         mesh, params = self._meshes[emissive]
         params["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())

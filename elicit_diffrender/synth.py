@@ -1,9 +1,12 @@
 """Synthetic clothed subjects: a seeded, textured, clothed Anny person rendered by Mitsuba.
 
-The person is Anny with a seeded phenotype. Garments (shirt, trousers, shoes, hair, skin) are
-regions of the body surface: each is pushed out along the normals by its thickness, so the clothed
-shape is not the body, and painted procedurally in UV space with colours and patterns drawn from
-the seed. The back differs from the front (a back print and a higher collar), so completing unseen
+The person is Anny with a seeded phenotype. Garments (shirt, trousers or a skirt, shoes, hair,
+skin) are regions of the body surface, each moved out from the body (``garment_offsets``), so the
+clothed shape is not the body: tight garments by their thickness along the normals, a loose top by
+up to ``LOOSE_TOP`` more towards its hem (a tunic over the hips), a skirt onto a cone that flares
+from the waist to its hem above the knees, voluminous hair by up to ``hair_volume`` (a head larger
+than Anny's). Garments are painted procedurally in UV space with colours and patterns drawn from the
+seed. The back differs from the front (a back print and a higher collar), so completing unseen
 areas is measurable. Renders are path-traced under a fixed sky and key light; the subject holds
 the input view, the ring at the input frame (novel views) and the input camera over the motion
 (novel poses).
@@ -27,8 +30,19 @@ from .motions import Motion, builtin_motion
 from .rigs import ring_cameras
 from .subject import write_subject
 
-REGIONS = ("skin", "shirt", "collar", "trousers", "shoes", "hair")
-THICKNESS = {"skin": 0.0, "shirt": 0.012, "collar": 0.014, "trousers": 0.016, "shoes": 0.018, "hair": 0.02}
+REGIONS = ("skin", "shirt", "collar", "trousers", "shoes", "hair", "skirt")
+THICKNESS = {
+    "skin": 0.0,
+    "shirt": 0.012,
+    "collar": 0.014,
+    "trousers": 0.016,
+    "shoes": 0.018,
+    "hair": 0.02,
+    "skirt": 0.02,
+}
+LOOSE_TOP = 0.05  # metres a loose top stands off the body at its hem (on top of its thickness)
+SKIRT_FLARE = 0.10  # metres a skirt's radius grows from the waist to its hem
+SKIRT_BAND = 0.03  # metres: heights at which a skirt's legs are spread round the cone
 
 
 @dataclass
@@ -48,6 +62,9 @@ class Outfit:
     shorts: bool
     trouser_pattern: str
     shoes: tuple
+    loose_top: bool  # a tunic that stands off the body, down over the hips
+    skirt: bool  # a flared skirt to above the knees instead of trousers
+    hair_volume: float  # metres the hair stands off the head (0: close-cropped)
 
 
 def _color(rng: np.random.Generator, lo: float = 0.1, hi: float = 0.95) -> tuple:
@@ -84,6 +101,9 @@ def draw_outfit(seed: int) -> Outfit:
         shorts=bool(rng.random() < 0.3),
         trouser_pattern=str(rng.choice(["solid", "denim", "side_stripe"])),
         shoes=_color(rng, 0.05, 0.9),
+        loose_top=bool(rng.random() < 0.35),
+        skirt=bool(rng.random() < 0.3),
+        hair_volume=float(rng.uniform(0.05, 0.14)) if rng.random() < 0.4 else 0.0,
     )
 
 
@@ -99,9 +119,10 @@ def garment_regions(body: AnnyBody, outfit: Outfit) -> np.ndarray:
     head_c = joint["head"]
     # Shirt: torso above the waist, upper arms, forearms up to the wrist with long sleeves.
     waist_y = joint["pelvis"][1] + 0.55 * (joint["spine_lower"][1] - joint["pelvis"][1]) + 0.04
+    hem_top = waist_y - (0.14 if outfit.loose_top else 0.0)  # a loose top reaches down over the hips
     collar_drop = np.where(v[:, 2] > head_c[2], 0.07, 0.015)  # a V-neck in front, a crew neck behind
     is_torso = part == "torso"
-    shirt = is_torso & (v[:, 1] > waist_y) & (v[:, 1] < neck_y - collar_drop)
+    shirt = is_torso & (v[:, 1] > hem_top) & (v[:, 1] < neck_y - collar_drop)
     for side in ("l", "r"):
         upper = (part == ("left_upper_arm" if side == "l" else "right_upper_arm")) & (v[:, 1] < neck_y - collar_drop)
         fore = part == ("left_forearm" if side == "l" else "right_forearm")
@@ -119,7 +140,11 @@ def garment_regions(body: AnnyBody, outfit: Outfit) -> np.ndarray:
     legs = np.isin(part, ["left_thigh", "right_thigh", "left_shin", "right_shin"])
     hem_y = (joint["l_knee"][1] + 0.06) if outfit.shorts else (joint["l_ankle"][1] + 0.06)
     trousers = (is_torso & (v[:, 1] <= waist_y)) | (legs & (v[:, 1] > hem_y))
-    region[trousers] = REGIONS.index("trousers")
+    region[trousers & ~shirt] = REGIONS.index("trousers")
+    if outfit.skirt:
+        skirt = ((is_torso & (v[:, 1] <= waist_y)) | legs) & (v[:, 1] > skirt_hem(body, joint)) & ~shirt
+        region[skirt] = REGIONS.index("skirt")
+        region[legs & (v[:, 1] <= skirt_hem(body, joint))] = REGIONS.index("skin")
     shoes = legs & (v[:, 1] < joint["l_ankle"][1] + 0.035)
     region[shoes] = REGIONS.index("shoes")
     # Hair: the top and back of the head; long hair reaches the neck at the back.
@@ -131,6 +156,61 @@ def garment_regions(body: AnnyBody, outfit: Outfit) -> np.ndarray:
     hair &= ~((rel[:, 2] > 0.05) & (rel[:, 1] < 0.09))  # keep the face clear
     region[hair] = REGIONS.index("hair")
     return region
+
+
+def skirt_hem(body: AnnyBody, joint: dict) -> float:
+    """Rest height of a skirt's hem: a hand above the knees."""
+    return float(joint["l_knee"][1] + 0.12)
+
+
+def garment_offsets(body: AnnyBody, outfit: Outfit, region: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(V, 3) rest-pose displacement of every vertex by its garment (see the module's docstring)."""
+    v = body.rest_vertices
+    thickness = np.array([THICKNESS[r] for r in REGIONS])[region]
+    frames = body.pose(body.zero_pose()).bone_transforms
+    joint = {name: frames[body.joint_index(body.semantic[name]), :3, 3] for name in body.semantic}
+    shirt = region == REGIONS.index("shirt")
+    if outfit.loose_top:
+        chest_y = joint["spine_upper"][1]
+        torso = shirt & (body.vertex_parts() == PART_NAMES.index("torso"))
+        drop = np.clip((chest_y - v[:, 1]) / max(chest_y - v[shirt, 1].min(), 1e-6), 0.0, 1.0)
+        thickness = thickness + torso * LOOSE_TOP * (0.3 + 0.7 * drop)
+    hair = region == REGIONS.index("hair")
+    if outfit.hair_volume > 0:
+        rel = v - joint["head"]
+        away_from_face = np.clip(0.5 - 4.0 * rel[:, 2], 0.3, 1.0)  # fuller at the back than at the hairline
+        thickness = thickness + hair * outfit.hair_volume * away_from_face
+    offsets = normals * thickness[:, None]
+    skirt = region == REGIONS.index("skirt")
+    if skirt.any():
+        # Onto a cone about the body's vertical axis: the waist's radius, growing by SKIRT_FLARE to the hem. At each
+        # height (bands of SKIRT_BAND), each leg's angles about the axis are stretched onto its half of the cone, so
+        # that the two meet in front and behind instead of leaving a gap between the legs.
+        idx = np.nonzero(skirt)[0]
+        axis = joint["pelvis"][[0, 2]]
+        radial = v[idx][:, [0, 2]] - axis
+        r = np.linalg.norm(radial, axis=1)
+        angle = np.arctan2(radial[:, 0], radial[:, 1])  # 0 in front, pi/2 at the body's left (+x)
+        parts = np.array(PART_NAMES)[body.vertex_parts()[idx]]
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            leg = np.char.startswith(parts, side)
+            if leg.sum() < 2:
+                continue
+            a = np.arctan2(np.maximum(sign * radial[leg, 0], 1e-6), radial[leg, 1])  # from the front, in (0, pi)
+            band = np.floor(v[idx[leg], 1] / SKIRT_BAND).astype(int)
+            for b in np.unique(band):
+                sel = np.nonzero(leg)[0][band == b]
+                ab = a[band == b]
+                span = max(ab.max() - ab.min(), 1e-6)
+                angle[sel] = sign * np.pi * (ab - ab.min()) / span
+        waist_y, hem_y = v[idx, 1].max(), skirt_hem(body, joint)
+        t = np.clip((waist_y - v[idx, 1]) / max(waist_y - hem_y, 1e-6), 0.0, 1.0)
+        cone = np.percentile(r[v[idx, 1] > waist_y - 0.03], 90) + THICKNESS["skirt"] + SKIRT_FLARE * t
+        radius = np.maximum(cone, r + THICKNESS["skirt"])
+        offsets[idx] = 0.0
+        offsets[idx, 0] = axis[0] + radius * np.sin(angle) - v[idx, 0]
+        offsets[idx, 2] = axis[1] + radius * np.cos(angle) - v[idx, 2]
+    return offsets
 
 
 def seam_split(faces: np.ndarray, face_uvs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,6 +299,9 @@ def paint_texture(
     elif outfit.trouser_pattern == "side_stripe":
         side = trousers & (np.abs(normal[..., 0]) > 0.85)
         put(side, outfit.shirt_alt)
+    skirt = region == REGIONS.index("skirt")
+    put(skirt, outfit.trousers)
+    put(skirt & _stripes(np.arctan2(x, z), 0.2), np.array(outfit.trousers) * 0.7)  # pleats
     shoes = region == REGIONS.index("shoes")
     put(shoes, outfit.shoes)
     put(shoes & (y < pos[..., 1][shoes].min() + 0.015 if shoes.any() else shoes), (0.92, 0.92, 0.9))
@@ -266,7 +349,7 @@ def make_person(seed: int, texture_size: int = 1024) -> SyntheticPerson:
     body = AnnyBody(outfit.phenotype)
     region = garment_regions(body, outfit)
     normals = vertex_normals(body.rest_vertices, body.faces)
-    offsets = normals * np.array([THICKNESS[r] for r in REGIONS])[region][:, None]
+    offsets = garment_offsets(body, outfit, region, normals)
     uniq, faces = seam_split(body.faces, body.face_uvs)
     body_idx, uv_idx = uniq[:, 0], uniq[:, 1]
     uvs = body.uvs[uv_idx]

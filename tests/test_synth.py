@@ -58,3 +58,23 @@ def test_garment_regions_cover_the_body(anny_body):
     heights = anny_body.rest_vertices[:, 1]
     assert heights[region == REGIONS.index("shoes")].max() < heights[region == REGIONS.index("trousers")].max()
     assert heights[region == REGIONS.index("hair")].min() > heights[region == REGIONS.index("shirt")].mean()
+
+
+def test_loose_garments_stand_off_the_body():
+    """A skirt flares from the waist, a loose top stands off towards its hem, voluminous hair raises the head."""
+    skirted = make_person(14, texture_size=256)  # a skirt and 13 cm of hair
+    assert skirted.outfit.skirt and skirted.outfit.hair_volume > 0.1
+    rest = skirted.body.rest_vertices
+    clothed = rest + skirted.offsets
+    skirt = skirted.regions == REGIONS.index("skirt")
+    body = skirted.body
+    pelvis = body.pose(body.zero_pose()).bone_transforms[body.joint_index(body.semantic["pelvis"]), :3, 3]
+    hem = skirt & (rest[:, 1] < rest[skirt, 1].min() + 0.03)
+    radius = np.linalg.norm((clothed[hem] - pelvis)[:, [0, 2]], axis=1)
+    assert radius.min() > 0.12  # the hem is a ring round both legs, not two tubes
+    hair = skirted.regions == REGIONS.index("hair")
+    assert clothed[hair, 1].max() > rest[:, 1].max() + 0.08
+    loose = make_person(1, texture_size=256)
+    assert loose.outfit.loose_top
+    shirt = loose.regions == REGIONS.index("shirt")
+    assert np.linalg.norm(loose.offsets[shirt], axis=1).max() > 0.05
