@@ -1,9 +1,11 @@
 #!/usr/bin/env python
-"""Run ``elicit prepare`` on every photo in ../shared/real/, then fit two of them and render front,
-side and back views. Writes ``docs/real_photos.md`` and small downscaled images under
-``docs/images/`` (the photos themselves are never copied into the project).
+"""Run ``elicit prepare`` on every photo in ../shared/real/, then fit them and render front, side and
+back views. Writes ``docs/real_photos.md`` and small downscaled images under ``docs/images/`` (the
+photos themselves are never copied into the project). Fits run ``--jobs`` at a time, one CPU
+thread each; finished fits are reused and killed ones resumed.
 
-    python scripts/real_photos.py [--shared ../shared/real] [--fit elicit_fs3903_m394 pifu_ryota] [--skip-fit]
+    python scripts/real_photos.py [--shared ../shared/real] [--fit NAME ...] [--skip-fit] [--jobs 2]
+        [--notes docs/real_photos_notes.md]
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 import json
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -36,13 +39,16 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=ROOT.parent / "shared" / "real")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "real_photos")
-    ap.add_argument("--fit", nargs="*", default=["elicit_fs3903_m394", "pifu_ryota"])
+    ap.add_argument("--fit", nargs="*", default=list(PHOTOS), help="photos to fit (default: all)")
     ap.add_argument("--skip-fit", action="store_true")
+    ap.add_argument("--jobs", type=int, default=2, help="parallel fits (each single-threaded)")
+    ap.add_argument("--notes", type=Path, default=None, help="markdown appended to the report (what a person saw)")
     args = ap.parse_args()
     import imageio.v3 as iio
 
     from elicit_diffrender.animate import contact_sheet, load_avatar
     from elicit_diffrender.avatar import AVATAR_FILE
+    from elicit_diffrender.benchtools import run, worker_env
     from elicit_diffrender.body.fitting import RENDER_STEPS
     from elicit_diffrender.fit.checkpoint import CHECKPOINT
     from elicit_diffrender.fit.views import place_ring
@@ -82,14 +88,23 @@ def main() -> int:
         tiles.append(small(iio.imread(out / "overlay.png")[..., :3].astype(np.float32) / 255.0))
         captions.append(name)
     sheet = contact_sheet(tiles, captions, ROOT / "docs" / "images" / "real_overlays.png")
+    names = [] if args.skip_fit else [n for n in args.fit if (args.work / n / "subject.json").is_file()]
+    env = worker_env(args.jobs)
+
+    def fit(name: str) -> None:
+        out = args.work / f"{name}_run"
+        if not (out / AVATAR_FILE).is_file():
+            resume = ["--resume"] if (out / CHECKPOINT).is_file() else []
+            cmd = [elicit, "fit", str(args.work / name), "--out", str(out), *resume]
+            run(cmd, env, args.work / f"{name}_fit.log")
+
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        list(pool.map(fit, names))
     fits = []
-    for name in [] if args.skip_fit else args.fit:
-        subject_dir, run = args.work / name, args.work / f"{name}_run"
-        if not (run / AVATAR_FILE).is_file():
-            resume = ["--resume"] if (run / CHECKPOINT).is_file() else []
-            subprocess.run([elicit, "fit", str(subject_dir), "--out", str(run), *resume], check=True)
+    for name in names:
+        subject_dir = args.work / name
         subject = load_subject(subject_dir)
-        avatar = load_avatar(run)
+        avatar = load_avatar(args.work / f"{name}_run")
         ring = place_ring(subject, 8, 256)
         pose = subject.motion.frame(subject.input_index)
         views = [avatar.render_pose(ring[k], *pose)["rgb"] for k in (0, 2, 4)]
@@ -100,13 +115,15 @@ def main() -> int:
             ["input", "front", "side", "back", "novel pose"],
             ROOT / "docs" / "images" / f"real_fit_{name}.png",
         )
-        report = json.loads((run / "run.json").read_text())
+        report = json.loads((args.work / f"{name}_run" / "run.json").read_text())
         fits.append(
             {
                 "photo": name,
                 "image": path.name,
                 "seconds": report["seconds"]["total"],
                 "encoder": report["encoder"]["name"],
+                "light": report["input_light"]["ratio"],
+                "room": report["room_m"],
             }
         )
     lines = [
@@ -150,10 +167,14 @@ def main() -> int:
             "",
             f"## Avatar: {f['photo']}",
             "",
-            f"`elicit fit` with `cpu-fast` ({f['seconds'] / 60:.1f} min, semantic encoder: {f['encoder']}).",
+            f"`elicit fit` with `cpu-fast` ({f['seconds'] / 60:.1f} min on one thread, {args.jobs} fits side by "
+            f"side; semantic encoder: {f['encoder']}; the photo's light: key/ambient {f['light']:.2f}; room beyond "
+            f"the body: {100 * f['room']:.0f} cm).",
             "",
             f"![{f['photo']}]({Path('images') / f['image']})",
         ]
+    if args.notes is not None:
+        lines += ["", args.notes.read_text().strip()]
     write_text(ROOT / "docs" / "real_photos.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
