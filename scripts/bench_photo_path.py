@@ -100,7 +100,9 @@ def main() -> int:
             }
         )
     full, baseline, no_semantic = rows
-    alignment = [results[(seed, "full model")]["alignment"] for seed, _ in subjects]
+    alignment = [
+        {**results[(seed, "full model")]["alignment"], "fitted_subject": f"prepared_{seed}"} for seed, _ in subjects
+    ]
     target = {
         "full_beats_baseline_by_2db_psnr": full["psnr"] - baseline["psnr"] >= 2.0,
         "full_beats_baseline_ssim": full["ssim"] > baseline["ssim"],

@@ -57,13 +57,14 @@ LIKELY_REASON = {
     "by about 1 dB on two subjects)",
     "without hybrid sampling": "without CLIP weights no term compares the content of crops (the mirror completion "
     "needs no render), so the sampling only chooses where the silhouette and opacity terms look",
-    "without silhouette loss": "the synthetic clothing is tight, so the body prior rarely disagrees with the subject",
-    "hard silhouette constraint": "the synthetic clothing is tight (1-2 cm), so a hard body silhouette costs little",
+    "without silhouette loss": "the silhouette and edge terms weigh 0.01 each against the input photo's "
+    "reconstruction; where the body and the clothes disagree (a skirt, a tunic) the photo decides either way",
+    "hard silhouette constraint": "the silhouette terms weigh 0.01 each; a skirt or tunic that the input photo "
+    "shows keeps its density against a hard body silhouette as against a soft one",
     "input pose only": "the novel-view split renders the input frame, the one pose this ablation trains on; the "
     "motion weights come from the body prior and stay fixed, so novel poses gain little from training on them",
     "without body-render initialisation": "",
-    "body mesh with explicit texture": "the synthetic subjects wear tight clothes over the same body model, which "
-    "favours a textured body mesh",
+    "body mesh with explicit texture": "",
 }
 
 
