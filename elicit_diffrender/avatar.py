@@ -142,6 +142,11 @@ class Avatar(nn.Module):
         return int(self.config.get("warp_sharpness", 1))
 
     @property
+    def gate(self) -> float:
+        """The inverse warp's gate in metres (``warp_gate``; avatars from before it existed used none)."""
+        return float(self.config.get("warp_gate", 0.0))
+
+    @property
     def device(self) -> torch.device:
         return self.field.density.device
 
@@ -226,7 +231,12 @@ class Avatar(nn.Module):
         samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
         weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
         x_c, fg = inverse_lbs(
-            samples.positions, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness
+            samples.positions,
+            self.obs_to_canonical(bones),
+            weights,
+            self.motion_weights.box,
+            sharpness=self.sharpness,
+            gate=self.gate,
         )
         fg = fg.clamp(max=1.0)  # a likelihood: bones whose candidates both carry weight must not add up past 1
         f = self.field

@@ -51,6 +51,9 @@ class FitConfig:
     # Exponent of the inverse warp's blend of bone candidates (1: HumanNeRF's weighted mean; larger: the
     # dominant bone decides, so candidates of distant bones do not average into ghost limbs)
     warp_sharpness: int = 4
+    # Only bone candidates within this distance (metres) of the dominant bone's are blended (0: all), so a
+    # hand hanging beside the hip is not averaged with the thigh into empty room (a dark fin there)
+    warp_gate: float = 0.10
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
@@ -133,6 +136,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (
     ("box_margin", 0.0, 1.0),
     ("weight_grid", 2, 256),
     ("warp_sharpness", 1, 16),
+    ("warp_gate", 0.0, 1.0),
     ("occupancy_cell", 0.0, 1.0),
     ("samples_per_ray", 1, 4096),
     ("t_thresh", 0.0, 0.5),

@@ -64,6 +64,7 @@ def inverse_lbs_reference(
     box: torch.Tensor,
     eps: float = 1e-4,
     sharpness: float = 1.0,
+    gate: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Same outputs as :func:`elicit_diffrender.skinning.inverse_lbs`."""
     y = torch.einsum("bij,pj->bpi", obs_to_canonical[:, :3, :3], points) + obs_to_canonical[:, None, :3, 3]
@@ -73,8 +74,11 @@ def inverse_lbs_reference(
     w = F.grid_sample(weights[:, None], coords, mode="bilinear", padding_mode="zeros", align_corners=True)
     w = w.reshape(weights.shape[0], -1) * ((norm >= -1) & (norm <= 1)).all(-1)
     fg = w.sum(0)
-    top = w.max(0).values.detach()  # x_c does not depend on a common scale of the weights
+    top, arg = w.detach().max(0)  # x_c does not depend on a common scale of the weights
     u = torch.where(top > 0, w / top.clamp(min=1e-300), torch.zeros_like(w)) ** sharpness
+    if gate > 0:  # only candidates near the dominant bone's are blended
+        y_top = y.detach()[arg, torch.arange(y.shape[1])]
+        u = torch.where((y.detach() - y_top).square().sum(-1) <= gate**2, u, torch.zeros_like(u))
     x_c = (u[..., None] * y).sum(0) / u.sum(0).clamp(min=eps)[:, None]
     return x_c, fg
 

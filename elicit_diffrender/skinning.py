@@ -21,7 +21,9 @@ MAX_BONES = 128
 MAX_SHARPNESS = 16
 
 
-def _warp_arguments(rot: torch.Tensor, trans: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, eps: float):
+def _warp_arguments(
+    rot: torch.Tensor, trans: torch.Tensor, weights: torch.Tensor, box: torch.Tensor, eps: float, gate: float
+):
     """The struct both inverse-LBS passes read: bone transforms, the weight volume and where it lies."""
     st = skinning_types(warp_scalar(weights.dtype))
     warp = st.Warp()
@@ -30,26 +32,28 @@ def _warp_arguments(rot: torch.Tensor, trans: torch.Tensor, weights: torch.Tenso
     warp.weights = to_warp(weights)
     warp.frame = grid_frame(st.grid, box, weights.shape[1:])
     warp.eps = eps
+    warp.gate = gate
     return st, warp
 
 
 class _InverseLBS(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, points, rot, trans, weights, box, eps, sharpness):
-        st, warp = _warp_arguments(rot, trans, weights, box, eps)
+    def forward(ctx, points, rot, trans, weights, box, eps, sharpness, gate):
+        st, warp = _warp_arguments(rot, trans, weights, box, eps, gate)
         out_x = torch.empty_like(points)
         out_fg = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
         out_norm = torch.empty(points.shape[0], 2, dtype=points.dtype, device=points.device)  # (max w, sum u)
+        out_top = torch.empty(points.shape[0], dtype=torch.int32, device=points.device)  # argmax_b w_b
         kernel = inverse_lbs_forward(warp_scalar(points.dtype), weights.shape[0], sharpness)
         args = [to_warp(points, dtype=st.vec3), warp, to_warp(out_x, dtype=st.vec3), to_warp(out_fg)]
-        launch(kernel, points.shape[0], points.device, [*args, to_warp(out_norm, dtype=st.vec2)])
-        ctx.save_for_backward(points, rot, trans, weights, out_x, out_norm)
-        ctx.box, ctx.eps, ctx.sharpness = box, eps, sharpness
+        launch(kernel, points.shape[0], points.device, [*args, to_warp(out_norm, dtype=st.vec2), to_warp(out_top)])
+        ctx.save_for_backward(points, rot, trans, weights, out_x, out_norm, out_top)
+        ctx.box, ctx.eps, ctx.sharpness, ctx.gate = box, eps, sharpness, gate
         return out_x, out_fg
 
     @staticmethod
     def backward(ctx, g_x, g_fg):
-        points, rot, trans, weights, out_x, out_norm = ctx.saved_tensors
+        points, rot, trans, weights, out_x, out_norm, out_top = ctx.saved_tensors
         dtype, device = points.dtype, points.device
         n = points.shape[0]
         need_points = ctx.needs_input_grad[0]
@@ -65,12 +69,13 @@ class _InverseLBS(torch.autograd.Function):
             (torch.zeros_like(weights) if need_weights else tiny4, torch.zeros_like(rot), torch.zeros_like(trans))
             for _ in range(parts)
         ]
-        st, warp = _warp_arguments(rot, trans, weights, ctx.box, ctx.eps)
+        st, warp = _warp_arguments(rot, trans, weights, ctx.box, ctx.eps, ctx.gate)
         common = [
             to_warp(points, dtype=st.vec3),
             warp,
             to_warp(out_x, dtype=st.vec3),
             to_warp(out_norm, dtype=st.vec2),
+            to_warp(out_top),
             to_warp(g_x, dtype=st.vec3),
             to_warp(g_fg),
             to_warp(grad_points, dtype=st.vec3),
@@ -97,6 +102,7 @@ class _InverseLBS(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -107,8 +113,9 @@ def inverse_lbs(
     box: torch.Tensor,
     eps: float = 1e-4,
     sharpness: int = 1,
+    gate: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp observation-space points to canonical space (HumanNeRF's inverse LBS, optionally sharpened).
+    """Warp observation-space points to canonical space (HumanNeRF's inverse LBS, optionally sharpened and gated).
 
     Args:
         points: (P, 3) observation-space points.
@@ -120,6 +127,8 @@ def inverse_lbs(
             ``(w_b / max_b w_b)^k``; 1 is HumanNeRF's ``sum_b w_b y_b / sum_b w_b``, larger values let the
             dominant bone decide where candidates of distant bones would average into a ghost
             (``kernels/skinning.py``).
+        gate: metres; only candidates within ``gate`` of the dominant bone's candidate are blended (0: all),
+            so two bones that both claim a point (a hand beside the hip) do not average it into empty room.
 
     Returns:
         ``x_c`` (P, 3) canonical points and ``fg`` (P,) the summed bone weights (foreground likelihood).
@@ -137,7 +146,10 @@ def inverse_lbs(
     trans = obs_to_canonical[:, :3, 3].contiguous()
     if int(sharpness) != sharpness or not 1 <= sharpness <= MAX_SHARPNESS:
         raise ValueError(f"sharpness must be an integer in 1..{MAX_SHARPNESS}, got {sharpness}")
+    if not gate >= 0:
+        raise ValueError(f"gate must be >= 0 metres, got {gate}")
     args = (points.contiguous(), rot, trans, weights.contiguous(), box.detach().cpu(), float(eps), int(sharpness))
+    args = (*args, float(gate))
     return _InverseLBS.apply(*args)
 
 

@@ -6,8 +6,12 @@
   sharpened by the integer exponent ``k``: ``x_c = sum_b u_b y_b / sum_b u_b`` with ``u_b = (w_b / m)^k``,
   ``m = max_b w_b`` (``k = 1``: HumanNeRF's ``sum_b w_b y_b / sum_b w_b``). ``fg = sum_b w_b`` is the
   foreground likelihood. Dividing by ``m`` changes nothing in ``x_c`` but keeps ``sum_b u_b >= 1``
-  (no shrinking towards the origin where all weights are small); ``m`` is kept by a running rescale
-  in one pass over the bones. The bone count and ``k`` are compile-time constants of each kernel instance.
+  (no shrinking towards the origin where all weights are small). With a gate ``r > 0`` only candidates
+  within ``r`` of the dominant bone's candidate ``y_top`` (``top = argmax_b w_b``) are blended
+  (``u_b = 0`` beyond): where a hand hangs beside the hip, the wrist's and the thigh's candidates both
+  carry weight but lie far apart in canonical space, and their mean would land in empty room. One pass
+  finds ``m`` and ``top``, a second blends. The bone count and ``k`` are compile-time constants of each
+  kernel instance, the gate a runtime value.
 * ``forward_lbs``: mesh vertices, canonical -> posed, with sparse per-vertex bone weights.
 
 Adjoints are hand-written; which gradients to compute is a compile-time constant of each backward
@@ -15,7 +19,7 @@ kernel instance, so only those asked for cost anything. Every kernel takes the f
 launch (``i0``) so that a CPU launch can be split across threads.
 
 Inverse-LBS backward: ``x_c`` does not change when every ``w_b`` is scaled alike, so ``m`` is a constant
-of the derivative. With ``su = sum_b u_b``, ``acc = sum_b u_b y_b`` and ``x_c = acc / max(su, eps)``, the
+of the derivative, and so is the gate (piecewise constant; gated bones have ``u_b = 0``). With ``su = sum_b u_b``, ``acc = sum_b u_b y_b`` and ``x_c = acc / max(su, eps)``, the
 incoming ``g_x`` and ``g_fg`` give ``dL/dacc = g_x / max(su, eps)`` and ``dL/dsu = -g_x . x_c / su`` (only
 where ``su > eps``), so ``dL/du_b = dL/dacc . y_b + dL/dsu`` and ``dL/dw_b = dL/du_b k u_b / w_b + g_fg``
 (``k (w_b / m)^(k - 1) / m``; scattered to the 8 weight nodes around ``y_b``), and ``dL/dy_b = u_b dL/dacc
@@ -49,6 +53,7 @@ def skinning_types(dtype) -> SimpleNamespace:
         weights: wp.array4d(dtype=dtype)
         frame: g.GridFrame
         eps: dtype
+        gate: dtype  # blend only candidates this close to the dominant bone's (<= 0: all)
 
     vec2 = wp.types.vector(2, dtype)
     return SimpleNamespace(vec2=vec2, vec3=vec3, mat33=mat33, grid=g, Warp=Warp)
@@ -85,6 +90,7 @@ def inverse_lbs_forward(dtype, n_bones: int, sharpness: int = 1):
     g, vec3 = st.grid, st.vec3
     sh = sharpen_funcs(dtype, sharpness)
     NB = n_bones
+    bone_weights = wp.types.vector(length=NB, dtype=dtype)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def inverse_lbs_fwd(
@@ -94,32 +100,39 @@ def inverse_lbs_forward(dtype, n_bones: int, sharpness: int = 1):
         out_x: wp.array(dtype=vec3),
         out_fg: wp.array(dtype=dtype),
         out_norm: wp.array(dtype=st.vec2),
+        out_top: wp.array(dtype=wp.int32),
     ):
         i = wp.tid() + i0
         x = points[i]
-        acc = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
+        ws = bone_weights()
         s = dtype(0.0)
-        su = dtype(0.0)
         m = dtype(0.0)
-        for b in range(NB):
+        top = int(0)
+        for b in range(NB):  # every bone's weight at its candidate; the largest and its bone
             y = warp.rot[b] * x + warp.trans[b]
             ok, base, frac = g.locate(y, warp.frame)
             if ok:
                 w = g.lerp4(warp.weights, b, base, g.corner_weights(frac))
+                ws[b] = w
                 s += w
-                if w > m:  # a new largest weight: rescale what was summed relative to it
-                    if m > dtype(0.0):
-                        r = sh.power(m / w)
-                        acc *= r
-                        su *= r
+                if w > m:
                     m = w
-                if m > dtype(0.0):
-                    u = sh.power(w / m)
-                    acc += u * y
-                    su += u
+                    top = b
+        y_top = warp.rot[top] * x + warp.trans[top]
+        acc = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
+        su = dtype(0.0)
+        if m > dtype(0.0):
+            for b in range(NB):  # blend the candidates that lie within the gate of the dominant one
+                if ws[b] > dtype(0.0):
+                    y = warp.rot[b] * x + warp.trans[b]
+                    if warp.gate <= dtype(0.0) or wp.length_sq(y - y_top) <= warp.gate * warp.gate:
+                        u = sh.power(ws[b] / m)
+                        acc += u * y
+                        su += u
         out_x[i] = acc / wp.max(su, warp.eps)
         out_fg[i] = s
         out_norm[i] = st.vec2(m, su)
+        out_top[i] = top
 
     return inverse_lbs_fwd
 
@@ -140,6 +153,7 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
         warp: st.Warp,
         out_x: wp.array(dtype=vec3),
         out_norm: wp.array(dtype=st.vec2),
+        out_top: wp.array(dtype=wp.int32),
         grad_x: wp.array(dtype=vec3),
         grad_fg: wp.array(dtype=dtype),
         grad_points: wp.array(dtype=vec3),
@@ -157,14 +171,19 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
         if su > warp.eps:
             gsu = -wp.dot(grad_x[i], out_x[i]) / msu
         gfg = grad_fg[i]
+        top = out_top[i]
+        y_top = warp.rot[top] * x + warp.trans[top]
         gp = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         for b in range(NB):
             y = warp.rot[b] * x + warp.trans[b]
             ok, base, frac = g.locate(y, warp.frame)
             if ok and m > dtype(0.0):
                 w, gfrac = g.value_and_grad(g.corners4(warp.weights, b, base), frac)
-                u = sh.power(w / m)
-                gw = (wp.dot(gacc, y) + gsu) * sh.power_grad(w / m) / m + gfg
+                u = dtype(0.0)
+                gw = gfg
+                if warp.gate <= dtype(0.0) or wp.length_sq(y - y_top) <= warp.gate * warp.gate:
+                    u = sh.power(w / m)
+                    gw += (wp.dot(gacc, y) + gsu) * sh.power_grad(w / m) / m
                 if wp.static(WEIGHTS):
                     g.scatter4(grad_weights, b, base, g.corner_weights(frac), gw)
                 if wp.static(POINTS or BONES):

@@ -190,14 +190,18 @@ def test_bone_count_limits():
         inverse_lbs(torch.zeros(1, 3), torch.eye(4).repeat(129, 1, 1), torch.zeros(129, 2, 2, 2), WBOX.float())
 
 
-@pytest.mark.parametrize("sharpness", [2, 6])
-def test_sharpened_warp_matches_reference_values_and_gradients(sharpness):
+@pytest.mark.parametrize(("sharpness", "gate"), [(2, 0.0), (6, 0.0), (1, 0.3), (4, 0.3)])
+def test_sharpened_warp_matches_reference_values_and_gradients(sharpness, gate):
     gen = torch.Generator().manual_seed(13)
     pts = (0.5 * torch.randn(800, 3, generator=gen, dtype=torch.float64)).requires_grad_()
     mats = random_transforms(24, seed=14).requires_grad_()
     weights = random_weights(24, res=(8, 8, 8), seed=15).requires_grad_()
-    ours = inverse_lbs(pts, mats, weights, WBOX, sharpness=sharpness)
-    ref = inverse_lbs_reference(pts, mats, weights, WBOX, sharpness=sharpness)
+    ours = inverse_lbs(pts, mats, weights, WBOX, sharpness=sharpness, gate=gate)
+    ref = inverse_lbs_reference(pts, mats, weights, WBOX, sharpness=sharpness, gate=gate)
+    if gate:  # the gate leaves out some candidates of most points, so it is tested, not idle
+        y = torch.einsum("bij,pj->bpi", mats[:, :3, :3], pts) + mats[:, None, :3, 3]
+        spread = (y - ref[0][None]).norm(dim=-1).max(0).values
+        assert (spread > gate).float().mean() > 0.5
     torch.testing.assert_close(ours[0], ref[0], atol=1e-12, rtol=1e-10)
     torch.testing.assert_close(ours[1], ref[1], atol=1e-12, rtol=1e-10)
     wx = torch.randn(800, 3, generator=gen, dtype=torch.float64)
@@ -209,7 +213,11 @@ def test_sharpened_warp_matches_reference_values_and_gradients(sharpness):
     small = (pts[:10].detach().requires_grad_(), mats.detach()[:3].requires_grad_())
     w3 = random_weights(3, res=(4, 4, 4), seed=16).requires_grad_()
     assert torch.autograd.gradcheck(
-        lambda p, m, w: inverse_lbs(p, m, w, WBOX, sharpness=sharpness), (*small, w3), eps=1e-6, atol=1e-6, rtol=1e-5
+        lambda p, m, w: inverse_lbs(p, m, w, WBOX, sharpness=sharpness, gate=gate),
+        (*small, w3),
+        eps=1e-6,
+        atol=1e-6,
+        rtol=1e-5,
     )
 
 
@@ -231,3 +239,23 @@ def test_sharpening_lets_the_dominant_bone_decide():
         inverse_lbs(pt, mats, weights, WBOX, sharpness=0)
     with pytest.raises(ValueError, match="sharpness"):
         inverse_lbs(pt, mats, weights, WBOX, sharpness=2.5)
+
+
+def test_gate_keeps_two_claiming_bones_apart():
+    """A hand beside the hip: two bones claim the point with equal weight but their candidates lie 0.8 apart.
+    Any blend puts it in the room between them, whatever the sharpness; the gate keeps the dominant candidate
+    and blends only candidates near it. fg still counts every bone."""
+    mats = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    mats[1, :3, 3] = torch.tensor([0.8, 0.0, 0.0], dtype=torch.float64)  # far from bone 0's candidate
+    mats[2, :3, 3] = torch.tensor([0.0, 0.05, 0.0], dtype=torch.float64)  # near it
+    weights = torch.zeros(3, 9, 9, 9, dtype=torch.float64)
+    weights[0], weights[1], weights[2] = 0.5, 0.45, 0.5 * 0.5 ** (1 / 4)
+    pt = torch.tensor([[-0.4, 0.0, 0.0]], dtype=torch.float64)
+    blended, fg = inverse_lbs(pt, mats, weights, WBOX, sharpness=4)
+    gated, fg_gated = inverse_lbs(pt, mats, weights, WBOX, sharpness=4, gate=0.1)
+    assert float(blended[0, 0]) > -0.2  # pulled well into the room by bone 1
+    # bone 1 is left out; bones 0 and 2 blend with u = 1 and 0.5
+    torch.testing.assert_close(gated[0], torch.tensor([-0.4, 0.05 / 3, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(fg, fg_gated)
+    with pytest.raises(ValueError, match="gate"):
+        inverse_lbs(pt, mats, weights, WBOX, gate=-0.1)
