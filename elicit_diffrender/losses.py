@@ -110,4 +110,3 @@ def opacity_entropy(alpha: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
     """Mean binary entropy of the accumulated opacity: pushes half-transparent pixels to 0 or 1."""
     a = alpha.clamp(eps, 1 - eps)
     return -(a * a.log() + (1 - a) * (1 - a).log()).mean()
-

@@ -18,13 +18,13 @@ Adjoints are hand-written; which gradients to compute is a compile-time constant
 kernel instance, so only those asked for cost anything. Every kernel takes the first item of its
 launch (``i0``) so that a CPU launch can be split across threads.
 
-Inverse-LBS backward: ``x_c`` does not change when every ``w_b`` is scaled alike, so ``m`` is a constant
-of the derivative, and so is the gate (piecewise constant; gated bones have ``u_b = 0``). With ``su = sum_b u_b``, ``acc = sum_b u_b y_b`` and ``x_c = acc / max(su, eps)``, the
-incoming ``g_x`` and ``g_fg`` give ``dL/dacc = g_x / max(su, eps)`` and ``dL/dsu = -g_x . x_c / su`` (only
-where ``su > eps``), so ``dL/du_b = dL/dacc . y_b + dL/dsu`` and ``dL/dw_b = dL/du_b k u_b / w_b + g_fg``
-(``k (w_b / m)^(k - 1) / m``; scattered to the 8 weight nodes around ``y_b``), and ``dL/dy_b = u_b dL/dacc
-+ dL/dw_b grad w_b(y_b)``, which ``y_b = R_b x + t_b`` carries to the bone (``outer(dL/dy_b, x)``,
-``dL/dy_b``) and to the point (``R_b^T dL/dy_b``).
+Inverse-LBS backward: ``x_c`` does not change when every ``w_b`` is scaled alike, so ``m`` is a constant of
+the derivative, as is the gate (piecewise constant). With ``su = sum_b u_b``, ``acc = sum_b u_b y_b`` and
+``x_c = acc / max(su, eps)``, the incoming ``g_x`` and ``g_fg`` give ``dL/dacc = g_x / max(su, eps)`` and
+``dL/dsu = -g_x . x_c / su`` (where ``su > eps``), so ``dL/du_b = dL/dacc . y_b + dL/dsu`` and ``dL/dw_b =
+dL/du_b k u_b / w_b + g_fg`` (gated bones: ``g_fg``; scattered to the 8 weight nodes around ``y_b``), and
+``dL/dy_b = u_b dL/dacc + dL/dw_b grad w_b(y_b)``, which ``y_b = R_b x + t_b`` carries to the bone
+(``outer(dL/dy_b, x)``, ``dL/dy_b``) and to the point (``R_b^T dL/dy_b``).
 """
 
 import functools
