@@ -40,7 +40,7 @@ def main() -> int:
     ap.add_argument("--shared", type=Path, default=ROOT.parent / "shared" / "real")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "real_photos")
     ap.add_argument("--fit", nargs="*", default=list(PHOTOS), help="photos to fit (default: all)")
-    ap.add_argument("--skip-fit", action="store_true")
+    ap.add_argument("--skip-fit", action="store_true", help="fit nothing; report the fits already in --work")
     ap.add_argument("--jobs", type=int, default=2, help="parallel fits (each single-threaded)")
     ap.add_argument("--notes", type=Path, default=None, help="markdown appended to the report (what a person saw)")
     args = ap.parse_args()
@@ -88,7 +88,7 @@ def main() -> int:
         tiles.append(small(iio.imread(out / "overlay.png")[..., :3].astype(np.float32) / 255.0))
         captions.append(name)
     sheet = contact_sheet(tiles, captions, ROOT / "docs" / "images" / "real_overlays.png")
-    names = [] if args.skip_fit else [n for n in args.fit if (args.work / n / "subject.json").is_file()]
+    names = [n for n in args.fit if (args.work / n / "subject.json").is_file()]
     env = worker_env(args.jobs)
 
     def fit(name: str) -> None:
@@ -99,9 +99,9 @@ def main() -> int:
             run(cmd, env, args.work / f"{name}_fit.log")
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        list(pool.map(fit, names))
+        list(pool.map(fit, [] if args.skip_fit else names))
     fits = []
-    for name in names:
+    for name in [n for n in names if (args.work / f"{n}_run" / AVATAR_FILE).is_file()]:
         subject_dir = args.work / name
         subject = load_subject(subject_dir)
         avatar = load_avatar(args.work / f"{name}_run")
