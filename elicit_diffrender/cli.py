@@ -47,6 +47,24 @@ def _render(args: argparse.Namespace) -> None:
         print(f"wrote {path}")
 
 
+def _export(args: argparse.Namespace) -> None:
+    from .animate import load_avatar
+    from .avatar import Avatar
+    from .export import ExportError, export_glb
+    from .motions import load_motion
+
+    avatar = load_avatar(args.run)
+    if not isinstance(avatar, Avatar):
+        raise ExportError(f"{args.run}: the explicit-texture baseline has no radiance field to export")
+    motion = None if args.motion == "none" else load_motion(args.motion, avatar.body)
+    summary = export_glb(avatar, args.out, motion, args.resolution, args.faces)
+    frames = f", {summary['frames']} frames of {args.motion}" if motion is not None else ""
+    print(
+        f"wrote {summary['path']} ({summary['vertices']} vertices, {summary['faces']} faces, "
+        f"{summary['joints']} joints{frames}; {summary['appearance']}; {summary['seconds']:.1f} s)"
+    )
+
+
 def _demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
@@ -54,9 +72,9 @@ def _demo(args: argparse.Namespace) -> None:
     secs = summary["seconds"]
     print(
         f"demo done in {secs['total']:.0f} s (synth {secs['synth']:.0f} s, fit {secs['fit']:.0f} s, "
-        f"render {secs['render']:.0f} s)"
+        f"render {secs['render']:.0f} s, export {secs['export']:.0f} s)"
     )
-    for key in ("turntable", "animation", "contact_sheet"):
+    for key in ("turntable", "animation", "contact_sheet", "avatar_glb"):
         print(f"  {key}: {summary[key]}")
 
 
@@ -195,6 +213,18 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--samples", type=positive_int, default=64, help="samples per ray")
     v.add_argument("--fps", type=positive_float, default=30.0)
     v.set_defaults(func=_render)
+
+    x = sub.add_parser("export", help="the avatar as an animated glTF binary (.glb): mesh, colours, skeleton, motion")
+    x.add_argument("run", type=Path, help="a run folder (or its avatar file)")
+    x.add_argument("--out", type=Path, required=True, help="OUT.glb")
+    x.add_argument(
+        "--motion", default="walk_in_place", help="built-in motion name, motion .npz, or none (default: walk_in_place)"
+    )
+    x.add_argument(
+        "--resolution", type=positive_float, default=None, help="marching-cubes voxel, metres (default: the avatar's)"
+    )
+    x.add_argument("--faces", type=positive_int, default=None, help="decimate to about this many faces")
+    x.set_defaults(func=_export)
 
     d = sub.add_parser("demo", help="synthesise the default subject, fit it (cpu-fast) and render videos")
     d.add_argument("--out", type=Path, default=Path("elicit-demo"))

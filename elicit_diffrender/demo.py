@@ -2,8 +2,9 @@
 
 Synthesise the default subject (seed 0), fit it with the ``cpu-fast`` preset, then render a
 turntable, an animation in a motion the avatar never saw, and a contact sheet
-(input | front | side | back | novel pose). Each step is skipped when its result already exists,
-so an interrupted demo picks up where it stopped.
+(input | front | side | back | novel pose), and export the avatar doing that motion as ``avatar.glb``.
+Synthesis and the fit are skipped when their results already exist, so an interrupted demo picks
+up where it stopped.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 from .animate import contact_sheet, load_avatar, render_sequence, write_video
 from .avatar import AVATAR_FILE
 from .config import make_config
+from .export import export_glb
 from .io import write_json
 from .motions import builtin_motion
 from .rigs import read_rig, shipped_rig_path
@@ -72,6 +74,9 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     sheet = contact_sheet(
         tiles, ["input", "front", "side", "back", f"novel pose ({NOVEL_MOTION})"], out / "contact_sheet.png"
     )
+    t3 = time.perf_counter()
+    glb = export_glb(avatar, out / "avatar.glb", novel)["path"]
+    times["export"] = time.perf_counter() - t3
     times["total"] = time.perf_counter() - t0
     summary = {
         "subject": str(subject_dir),
@@ -79,6 +84,7 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
         "turntable": str(out / "turntable.mp4"),
         "animation": str(out / "animation.mp4"),
         "contact_sheet": str(sheet),
+        "avatar_glb": glb,
         "seconds": times,
     }
     write_json(out / "demo.json", summary)

@@ -3,6 +3,7 @@
 #   - Debian's libllvm19 for Dr.Jit's LLVM backend (the system's LLVM 15 crashes Mitsuba's llvm variants)
 #   - a virtual environment in .venv with a torch/torchvision pair that import together
 #   - this package, editable, with its dev extras
+#   - the Khronos glTF validator (npm) in .tools/node, for checking exported avatars
 #   - the Anny body model's one-time cache (about a minute, once)
 # Offline except the package registries. Idempotent: a second run takes seconds.
 set -euo pipefail
@@ -66,6 +67,24 @@ if [ "${ELICIT_NO_MEDIAPIPE:-0}" != 1 ] && [ ! -x "$ROOT/.venv-mediapipe/bin/pyt
   "$ROOT/.venv-mediapipe/bin/python" -c "import mediapipe" && touch "$ROOT/.venv-mediapipe/.ok"
 fi
 
-# 6. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
+# 6. Node tools for the glTF export: the Khronos glTF validator (npm), in .tools/node.
+GLTF_VALIDATOR=gltf-validator@2.0.0-dev.3.10
+if [ ! -f "$ROOT/.tools/node/.ok-$GLTF_VALIDATOR" ]; then
+  if ! command -v npm >/dev/null; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+      log "installing nodejs and npm (apt)"
+      apt-get install -y -q nodejs npm >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q nodejs npm >/dev/null; }
+    else
+      log "npm is missing: run 'apt-get install nodejs npm' as root (the glTF validator needs it)"
+      exit 1
+    fi
+  fi
+  log "installing $GLTF_VALIDATOR (npm) into .tools/node"
+  mkdir -p "$ROOT/.tools/node"
+  npm install --silent --no-audit --no-fund --prefix "$ROOT/.tools/node" "$GLTF_VALIDATOR" >/dev/null
+  touch "$ROOT/.tools/node/.ok-$GLTF_VALIDATOR"
+fi
+
+# 7. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
 "$VENV/bin/python" -m elicit_diffrender.body.anny_cache
 log "ready: $VENV"
