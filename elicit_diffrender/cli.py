@@ -65,6 +65,22 @@ def _export(args: argparse.Namespace) -> None:
     )
 
 
+def _view(args: argparse.Namespace) -> None:
+    from .viewer import write_viewer
+
+    glb = args.source
+    if glb.suffix.lower() != ".glb":
+        from .animate import load_avatar
+        from .export import export_glb
+        from .motions import load_motion
+
+        avatar = load_avatar(args.source)
+        glb = Path(export_glb(avatar, args.out / "avatar.glb", load_motion(args.motion, avatar.body))["path"])
+    elif not glb.is_file():
+        raise FileNotFoundError(2, "file not found", str(glb))
+    print(f"wrote {write_viewer(glb, args.out)} (open it in a browser; no server needed)")
+
+
 def _demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
@@ -74,7 +90,7 @@ def _demo(args: argparse.Namespace) -> None:
         f"demo done in {secs['total']:.0f} s (synth {secs['synth']:.0f} s, fit {secs['fit']:.0f} s, "
         f"render {secs['render']:.0f} s, export {secs['export']:.0f} s)"
     )
-    for key in ("turntable", "animation", "contact_sheet", "avatar_glb"):
+    for key in ("turntable", "animation", "contact_sheet", "avatar_glb", "viewer"):
         print(f"  {key}: {summary[key]}")
 
 
@@ -225,6 +241,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     x.add_argument("--faces", type=positive_int, default=None, help="decimate to about this many faces")
     x.set_defaults(func=_export)
+
+    page = sub.add_parser("view", help="a self-contained web page that shows the avatar and plays its animation")
+    page.add_argument("source", type=Path, help="a run folder (exported first) or a .glb")
+    page.add_argument("--out", type=Path, required=True, help="folder for index.html and avatar.glb")
+    page.add_argument("--motion", default="walk_in_place", help="motion to export when SOURCE is a run folder")
+    page.set_defaults(func=_view)
 
     d = sub.add_parser("demo", help="synthesise the default subject, fit it (cpu-fast) and render videos")
     d.add_argument("--out", type=Path, default=Path("elicit-demo"))

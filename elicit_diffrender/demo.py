@@ -2,7 +2,8 @@
 
 Synthesise the default subject (seed 0), fit it with the ``cpu-fast`` preset, then render a
 turntable, an animation in a motion the avatar never saw, and a contact sheet
-(input | front | side | back | novel pose), and export the avatar doing that motion as ``avatar.glb``.
+(input | front | side | back | novel pose), and export the avatar doing that motion as ``avatar.glb``
+with a web page that plays it (``viewer/index.html``).
 Synthesis and the fit are skipped when their results already exist, so an interrupted demo picks
 up where it stopped.
 """
@@ -19,6 +20,7 @@ from .export import export_glb
 from .io import write_json
 from .motions import builtin_motion
 from .rigs import read_rig, shipped_rig_path
+from .viewer import write_viewer
 
 DEMO_SEED = 0
 DEMO_MOTION = "walk_in_place"  # the training motion
@@ -76,6 +78,7 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
     )
     t3 = time.perf_counter()
     glb = export_glb(avatar, out / "avatar.glb", novel)["path"]
+    page = write_viewer(glb, out / "viewer")
     times["export"] = time.perf_counter() - t3
     times["total"] = time.perf_counter() - t0
     summary = {
@@ -85,6 +88,7 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
         "animation": str(out / "animation.mp4"),
         "contact_sheet": str(sheet),
         "avatar_glb": glb,
+        "viewer": str(page),
         "seconds": times,
     }
     write_json(out / "demo.json", summary)

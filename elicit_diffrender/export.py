@@ -7,8 +7,8 @@
   IoU 0.93-0.97 on the fitted demo avatar and 0.92-0.96 on a small test fit (0.3: 0.89-0.96; 0.8:
   0.89-0.98). Only components with at least ``MIN_COMPONENT`` of the largest one's faces are kept
   (floaters go); ``faces`` decimates (quadric).
-* Appearance: the canonical colour grid sampled at the vertices, as glTF vertex colours (``COLOR_0``);
-  no UV texture.
+* Appearance: the canonical colour grid sampled at the vertices, as glTF vertex colours (``COLOR_0``,
+  linear as glTF wants them: the grid holds the photos' sRGB values, converted); no UV texture.
 * Rig: one glTF joint per bone of the avatar's reduced skeleton, at its canonical (rest) transform,
   with inverse bind matrices; per vertex the 4 largest motion weights, normalised (``JOINTS_0``,
   ``WEIGHTS_0``). glTF skinning, ``v' = sum_j w_j J_j(t) IBM_j v``, is then the avatar's forward LBS,
@@ -51,7 +51,7 @@ class AvatarMesh:
 
     vertices: np.ndarray  # (V, 3) float32, canonical space, metres
     faces: np.ndarray  # (F, 3) int
-    colors: np.ndarray  # (V, 3) float32 in [0, 1], linear
+    colors: np.ndarray  # (V, 3) float32 in [0, 1], linear (glTF's COLOR_0)
     joints: np.ndarray  # (V, 4) uint16 bone indices
     weights: np.ndarray  # (V, 4) float32, rows sum to 1
 
@@ -86,8 +86,9 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
         mesh = mesh.simplify_quadric_decimation(face_count=int(faces))
     v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     with torch.no_grad():
-        colors = torch.sigmoid(sample_grid(f.color.detach().permute(3, 0, 1, 2).cpu(), f.box.cpu(), v)).numpy()
+        srgb = torch.sigmoid(sample_grid(f.color.detach().permute(3, 0, 1, 2).cpu(), f.box.cpu(), v)).numpy()
         w = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), v).numpy()
+    colors = srgb_to_linear(srgb)
     top = np.argsort(-w, axis=1)[:, :MAX_JOINTS_PER_VERTEX]
     tw = np.take_along_axis(w, top, 1)
     tw = tw / np.maximum(tw.sum(1, keepdims=True), 1e-8)
@@ -99,6 +100,11 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
         top.astype(np.uint16),
         tw.astype(np.float32),
     )
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] (the photos' and the renders' colours) to linear ones (glTF's ``COLOR_0``)."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 def _trs(m: np.ndarray) -> tuple[list[float], list[float]]:

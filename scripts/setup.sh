@@ -3,7 +3,8 @@
 #   - Debian's libllvm19 for Dr.Jit's LLVM backend (the system's LLVM 15 crashes Mitsuba's llvm variants)
 #   - a virtual environment in .venv with a torch/torchvision pair that import together
 #   - this package, editable, with its dev extras
-#   - the Khronos glTF validator (npm) in .tools/node, for checking exported avatars
+#   - Node.js, Chromium and npm packages (the glTF validator, three.js, esbuild) in .tools for the glTF
+#     export's checks and its viewer page
 #   - the Anny body model's one-time cache (about a minute, once)
 # Offline except the package registries. Idempotent: a second run takes seconds.
 set -euo pipefail
@@ -67,22 +68,36 @@ if [ "${ELICIT_NO_MEDIAPIPE:-0}" != 1 ] && [ ! -x "$ROOT/.venv-mediapipe/bin/pyt
   "$ROOT/.venv-mediapipe/bin/python" -c "import mediapipe" && touch "$ROOT/.venv-mediapipe/.ok"
 fi
 
-# 6. Node tools for the glTF export: the Khronos glTF validator (npm), in .tools/node.
-GLTF_VALIDATOR=gltf-validator@2.0.0-dev.3.10
-if [ ! -f "$ROOT/.tools/node/.ok-$GLTF_VALIDATOR" ]; then
-  if ! command -v npm >/dev/null; then
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-      log "installing nodejs and npm (apt)"
-      apt-get install -y -q nodejs npm >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q nodejs npm >/dev/null; }
-    else
-      log "npm is missing: run 'apt-get install nodejs npm' as root (the glTF validator needs it)"
-      exit 1
-    fi
+# 6. Web tools for the glTF export and its viewer page: Node.js, the Khronos glTF validator, three.js and
+#    esbuild (npm) in .tools/node; the viewer bundled into .tools/viewer/viewer.js; Chromium (headless) for
+#    the page's screenshot test.
+NPM_PACKAGES=(gltf-validator@2.0.0-dev.3.10 three@0.187.0 esbuild@0.25.0)
+need_apt=()
+command -v npm >/dev/null || need_apt+=(nodejs npm)
+command -v chromium >/dev/null || need_apt+=(chromium)
+if [ ${#need_apt[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    log "installing ${need_apt[*]} (apt)"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q "${need_apt[@]}" >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q "${need_apt[@]}" >/dev/null; }
+  else
+    log "missing ${need_apt[*]}: run 'apt-get install ${need_apt[*]}' as root (the glTF export's checks need them)"
+    exit 1
   fi
-  log "installing $GLTF_VALIDATOR (npm) into .tools/node"
+fi
+stamp="$ROOT/.tools/node/.ok-$(echo "${NPM_PACKAGES[*]}" | sha256sum | cut -c1-12)"
+if [ ! -f "$stamp" ]; then
+  log "installing ${NPM_PACKAGES[*]} (npm) into .tools/node"
   mkdir -p "$ROOT/.tools/node"
-  npm install --silent --no-audit --no-fund --prefix "$ROOT/.tools/node" "$GLTF_VALIDATOR" >/dev/null
-  touch "$ROOT/.tools/node/.ok-$GLTF_VALIDATOR"
+  npm install --silent --no-audit --no-fund --prefix "$ROOT/.tools/node" "${NPM_PACKAGES[@]}" >/dev/null
+  touch "$stamp"
+fi
+bundle="$ROOT/.tools/viewer/viewer.js"
+if [ ! -f "$bundle" ] || [ "$ROOT/scripts/viewer/viewer.js" -nt "$bundle" ] || [ "$stamp" -nt "$bundle" ]; then
+  log "bundling the viewer page's script (esbuild)"
+  mkdir -p "$ROOT/.tools/viewer"
+  NODE_PATH="$ROOT/.tools/node/node_modules" "$ROOT/.tools/node/node_modules/.bin/esbuild" \
+    "$ROOT/scripts/viewer/viewer.js" --bundle --format=iife --minify --log-level=warning --outfile="$bundle"
 fi
 
 # 7. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.

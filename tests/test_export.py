@@ -5,6 +5,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import imageio.v2 as imageio
 import numpy as np
 import pygltflib
 import pytest
@@ -76,7 +77,8 @@ def test_skinned_mesh_matches_the_volume_render_at_three_poses(exported):
         uv, _ = cam.project(verts)
         ys, xs = np.nonzero(mesh_mask & volume_mask)
         nearest = np.argmin((uv[None, :, 0] - xs[:, None] - 0.5) ** 2 + (uv[None, :, 1] - ys[:, None] - 0.5) ** 2, 1)
-        mse = float(((colors[nearest] - render["rgb"][ys, xs]) ** 2).mean())
+        srgb = np.where(colors <= 0.0031308, 12.92 * colors, 1.055 * np.maximum(colors, 0) ** (1 / 2.4) - 0.055)
+        mse = float(((srgb[nearest] - render["rgb"][ys, xs]) ** 2).mean())
         psnr = -10 * np.log10(max(mse, 1e-10))
         print(f"frame {frame}: silhouette IoU {iou:.3f}, colour PSNR {psnr:.1f} dB")
         assert psnr > 15.0
@@ -100,3 +102,50 @@ def test_export_command(exported, tmp_path, capsys):
             exported[0].body, exported[0].body_spec, 0.05, 0.1, occupancy_cell=0.04, weight_res=8, body_prior=False
         )
         export_glb(empty, tmp_path / "empty.glb")
+
+
+def screenshot(page: Path, out: Path, budget_ms: int) -> np.ndarray:
+    """A headless-Chromium screenshot (software WebGL) of ``page`` after ``budget_ms`` of virtual time."""
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.fail("chromium is missing: run scripts/setup.sh (it installs Debian's chromium)")
+    cmd = [
+        browser,
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--hide-scrollbars",
+        "--window-size=320,320",
+        f"--virtual-time-budget={budget_ms}",
+        f"--screenshot={out}",
+        page.as_uri(),
+    ]
+    subprocess.run(cmd, capture_output=True, timeout=180, check=False)
+    assert out.is_file(), f"no screenshot from {' '.join(cmd)}"
+    return np.asarray(imageio.imread(out))[..., :3].astype(np.int16)
+
+
+def test_viewer_page_shows_the_avatar_and_plays_it(exported, tmp_path, capsys):
+    _, _, root, _ = exported
+    out = tmp_path / "page"
+    assert main(["view", str(root / "avatar.glb"), "--out", str(out)]) == 0
+    assert "index.html" in capsys.readouterr().out
+    page = out / "index.html"
+    text = page.read_text()
+    assert (out / "avatar.glb").read_bytes() == (root / "avatar.glb").read_bytes()
+    assert 'src="http' not in text and "<script src=" not in text  # everything is inlined: it opens offline
+    early = screenshot(page, tmp_path / "early.png", 1500)
+    late = screenshot(page, tmp_path / "late.png", 3000)
+    background = np.array([32, 32, 32])
+    for shot in (early, late):
+        avatar = np.abs(shot - background).sum(-1) > 30
+        h, w = avatar.shape
+        inside = avatar[h // 10 : 9 * h // 10, w // 4 : 3 * w // 4].mean()
+        outside = np.concatenate([avatar[:, : w // 8].ravel(), avatar[:, -w // 8 :].ravel()]).mean()
+        assert inside > 0.05 and outside < 0.01, (inside, outside)  # the avatar, centred in the view
+    moved = (np.abs(early - late).sum(-1) > 30).mean()
+    assert moved > 0.002, moved  # the animation advances
+    assert main(["view", str(root / "nothing.glb"), "--out", str(tmp_path / "p2")]) == 2
+    assert "nothing.glb" in capsys.readouterr().err
