@@ -48,17 +48,10 @@ def _render(args: argparse.Namespace) -> None:
 
 
 def _export(args: argparse.Namespace) -> None:
-    from .animate import load_avatar
-    from .avatar import Avatar
-    from .export import ExportError, export_glb
-    from .motions import load_motion
+    from .export import export_run
 
-    avatar = load_avatar(args.run)
-    if not isinstance(avatar, Avatar):
-        raise ExportError(f"{args.run}: the explicit-texture baseline has no radiance field to export")
-    motion = None if args.motion == "none" else load_motion(args.motion, avatar.body)
-    summary = export_glb(avatar, args.out, motion, args.resolution, args.faces)
-    frames = f", {summary['frames']} frames of {args.motion}" if motion is not None else ""
+    summary = export_run(args.run, args.out, args.motion, args.resolution, args.faces)
+    frames = f", {summary['frames']} frames of {args.motion}" if summary["frames"] else ""
     print(
         f"wrote {summary['path']} ({summary['vertices']} vertices, {summary['faces']} faces, "
         f"{summary['joints']} joints{frames}; {summary['appearance']}; {summary['seconds']:.1f} s)"
@@ -66,18 +59,12 @@ def _export(args: argparse.Namespace) -> None:
 
 
 def _view(args: argparse.Namespace) -> None:
+    from .export import export_run
     from .viewer import write_viewer
 
     glb = args.source
     if glb.suffix.lower() != ".glb":
-        from .animate import load_avatar
-        from .export import export_glb
-        from .motions import load_motion
-
-        avatar = load_avatar(args.source)
-        glb = Path(export_glb(avatar, args.out / "avatar.glb", load_motion(args.motion, avatar.body))["path"])
-    elif not glb.is_file():
-        raise FileNotFoundError(2, "file not found", str(glb))
+        glb = Path(export_run(args.source, args.out / "avatar.glb", args.motion)["path"])
     print(f"wrote {write_viewer(glb, args.out)} (open it in a browser; no server needed)")
 
 

@@ -30,11 +30,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from .avatar import Avatar, sample_grid
 from .errors import ElicitError
+from .field import grid_points
 from .io import atomic_write
-from .motions import Motion
+from .motions import Motion, load_motion
 
 MIN_COMPONENT = 0.02  # keep mesh components with at least this share of the largest one's faces
 SURFACE_DENSITY = 0.45  # marching-cubes level, density per voxel of the avatar's grid
@@ -66,8 +68,7 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     box = f.box.detach().cpu().double()
     voxel = float(resolution or f.voxel_size)
     shape = tuple(max(2, int(math.ceil(float(e) / voxel)) + 1) for e in (box[1] - box[0]))
-    axes = [torch.linspace(float(box[0, a]), float(box[1, a]), shape[a], dtype=torch.float64) for a in range(3)]
-    nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).float()
+    nodes = grid_points(box, shape).reshape(-1, 3).float()
     with torch.no_grad():
         sigma = sample_grid(f.activated_density()[None].cpu(), f.box.cpu(), nodes)[:, 0]
         fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
@@ -75,7 +76,7 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     level = SURFACE_DENSITY
     if volume.max() <= level:
         raise ExportError(f"the avatar has no opaque region to mesh (its density never reaches {level})")
-    spacing = tuple(float(axes[a][1] - axes[a][0]) for a in range(3))
+    spacing = tuple(float(box[1, a] - box[0, a]) / (shape[a] - 1) for a in range(3))
     verts, tris, _, _ = marching_cubes(volume, level=level, spacing=spacing)
     mesh = trimesh.Trimesh(verts + box[0].numpy(), tris[:, ::-1], process=True)
     parts = mesh.split(only_watertight=False)
@@ -92,7 +93,6 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     top = np.argsort(-w, axis=1)[:, :MAX_JOINTS_PER_VERTEX]
     tw = np.take_along_axis(w, top, 1)
     tw = tw / np.maximum(tw.sum(1, keepdims=True), 1e-8)
-    tw[tw.sum(1) < 0.5] = np.array([1.0, 0.0, 0.0, 0.0])  # no weight at all (never after the fg mask): root
     return AvatarMesh(
         np.asarray(mesh.vertices, dtype=np.float32),
         np.asarray(mesh.faces, dtype=np.int64),
@@ -107,19 +107,6 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
-def _trs(m: np.ndarray) -> tuple[list[float], list[float]]:
-    """Translation and (x, y, z, w) rotation quaternion of a rigid 4x4 matrix."""
-    r = m[:3, :3]
-    t = m[:3, 3]
-    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0, r[2, 1] - r[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0, r[0, 2] - r[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0, r[1, 0] - r[0, 1])
-    q = np.array([x, y, z, w])
-    q /= np.linalg.norm(q)
-    return t.tolist(), q.tolist()
-
-
 def local_transforms(world: np.ndarray, parents: list[int]) -> np.ndarray:
     """(..., B, 4, 4) parent-relative transforms of (..., B, 4, 4) world transforms."""
     local = world.copy()
@@ -131,7 +118,7 @@ def local_transforms(world: np.ndarray, parents: list[int]) -> np.ndarray:
 
 def _quaternions(mats: np.ndarray) -> np.ndarray:
     """(N, 4) x, y, z, w quaternions of (N, 4, 4) rigid matrices, sign-continuous along N."""
-    q = np.array([_trs(m)[1] for m in mats])
+    q = Rotation.from_matrix(mats[:, :3, :3]).as_quat()
     for i in range(1, len(q)):
         if np.dot(q[i], q[i - 1]) < 0:
             q[i] = -q[i]
@@ -189,9 +176,13 @@ def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: 
 
     local_rest = local_transforms(rest, parents)
     nodes: list[dict] = [{"name": name, "mesh": 0, "skin": 0}]
+    rest_rotations = Rotation.from_matrix(local_rest[:, :3, :3]).as_quat()
     for b in range(n_bones):
-        t, q = _trs(local_rest[b])
-        node = {"name": avatar.reduced_joints[b], "translation": t, "rotation": q}
+        node = {
+            "name": avatar.reduced_joints[b],
+            "translation": local_rest[b, :3, 3].tolist(),
+            "rotation": rest_rotations[b].tolist(),
+        }
         children = [1 + c for c, p in enumerate(parents) if p == b]
         if children:
             node["children"] = children
@@ -289,3 +280,20 @@ def export_glb(
         "appearance": "vertex colours (COLOR_0)",
         "seconds": time.perf_counter() - start,
     }
+
+
+def export_run(
+    run: str | Path,
+    out: str | Path,
+    motion: str = "walk_in_place",
+    resolution: float | None = None,
+    faces: int | None = None,
+) -> dict:
+    """:func:`export_glb` of a run folder's (or avatar file's) avatar, with a motion by name or file
+    (``"none"``: no animation); the explicit-texture baseline has no field to mesh and is refused."""
+    from .animate import load_avatar
+
+    avatar = load_avatar(run)
+    if not isinstance(avatar, Avatar):
+        raise ExportError(f"{run}: the explicit-texture baseline has no radiance field to export")
+    return export_glb(avatar, out, None if motion == "none" else load_motion(motion, avatar.body), resolution, faces)

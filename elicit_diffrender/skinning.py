@@ -148,9 +148,10 @@ def inverse_lbs(
         raise ValueError(f"sharpness must be an integer in 1..{MAX_SHARPNESS}, got {sharpness}")
     if not gate >= 0:
         raise ValueError(f"gate must be >= 0 metres, got {gate}")
-    args = (points.contiguous(), rot, trans, weights.contiguous(), box.detach().cpu(), float(eps), int(sharpness))
-    args = (*args, float(gate))
-    return _InverseLBS.apply(*args)
+    box = box.detach().cpu()
+    return _InverseLBS.apply(
+        points.contiguous(), rot, trans, weights.contiguous(), box, float(eps), int(sharpness), float(gate)
+    )
 
 
 class _ForwardLBS(torch.autograd.Function):

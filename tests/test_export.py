@@ -97,6 +97,16 @@ def test_export_command(exported, tmp_path, capsys):
     assert "must be a .glb" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert main(["export", str(root / "run"), "--out", str(tmp_path / "b.glb"), "--motion", "nope"]) == 2
     assert "nope" in capsys.readouterr().err
+    # The explicit-texture baseline has no field to mesh: one line, exit 2, for export and for view.
+    from test_fit import TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
+
+    fit(exported[0], make_config("cpu-fast", overrides=[*TINY, "baseline=explicit_texture"]), tmp_path / "base")
+    assert main(["export", str(tmp_path / "base"), "--out", str(tmp_path / "c.glb")]) == 2
+    assert main(["view", str(tmp_path / "base"), "--out", str(tmp_path / "page")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("elicit ")]  # not the fit's log
+    assert (
+        len(err) == 2 and all("explicit-texture baseline" in line for line in err) and not (tmp_path / "c.glb").exists()
+    )
     with pytest.raises(ExportError, match="no opaque region"):
         empty = Avatar.from_body(
             exported[0].body, exported[0].body_spec, 0.05, 0.1, occupancy_cell=0.04, weight_res=8, body_prior=False
