@@ -177,3 +177,33 @@ def render_command(
     picks = np.linspace(0, len(frames) - 1, min(8, len(frames))).astype(int)
     written.append(contact_sheet([frames[k] for k in picks], [f"frame {k}" for k in picks], sheet_path))
     return written
+
+
+NOVEL_MOTION = "squat"  # the showcase's motion, one the avatar never saw
+TURNTABLE_FRAMES = 60
+
+
+def write_showcase(avatar, subject, out: str | Path, size: int = 256) -> dict[str, Path]:
+    """What ``elicit demo`` and ``elicit batch`` show of an avatar, written into ``out``: a turntable in the
+    input pose (``turntable.mp4``, a ring around the body, whatever frame the subject lives in), an
+    animation in a motion it never saw from a three-quarter view (``animation.mp4``), and a contact sheet
+    (input | front | side | back | novel pose)."""
+    from .fit.views import place_ring
+    from .motions import builtin_motion
+
+    out = Path(out)
+    ring = place_ring(subject, TURNTABLE_FRAMES, size)
+    input_pose = subject.motion.select([subject.input_index])
+    spin = render_sequence(avatar, ring, input_pose, desc="turntable")
+    turntable = write_video(out / "turntable.mp4", spin)
+    novel = builtin_motion(NOVEL_MOTION, avatar.body)  # in the body frame, where the shipped rigs are
+    three_quarter = read_rig(shipped_rig_path("ring"))[2]
+    frames = render_sequence(avatar, [three_quarter.scaled(size / three_quarter.width)], novel, desc="animation")
+    animation = write_video(out / "animation.mp4", frames)
+    cam_in = subject.cameras[subject.input_camera]
+    step = max(1, round(max(cam_in.width, cam_in.height) / size))
+    tiles = [subject.image(subject.input_camera, subject.input_frame)[::step, ::step]]
+    tiles += [spin[k * TURNTABLE_FRAMES // 4] for k in range(3)] + [frames[len(frames) // 2]]
+    captions = ["input", "front", "side", "back", f"novel pose ({NOVEL_MOTION})"]
+    sheet = contact_sheet(tiles, captions, out / "contact_sheet.png")
+    return {"turntable": turntable, "animation": animation, "contact_sheet": sheet}

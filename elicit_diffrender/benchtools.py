@@ -166,7 +166,7 @@ def worker_env(jobs: int) -> dict:
     """The environment of benchmark jobs: one CPU thread each when ``jobs`` run side by side."""
     if jobs == 1:
         return dict(os.environ, PYTHONUNBUFFERED="1")
-    return dict(os.environ, ELICIT_CPU_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    return dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
 
 
 def synthesize_subjects(elicit: str, work: Path, subjects: Sequence[tuple[int, str]], env: dict) -> None:

@@ -81,6 +81,22 @@ def _demo(args: argparse.Namespace) -> None:
         print(f"  {key}: {summary[key]}")
 
 
+def _batch(args: argparse.Namespace) -> None:
+    from .batch import parse_steps, run_batch
+    from .config import config_dict, make_config
+
+    steps = parse_steps(args.steps)
+    cfg = make_config(args.preset, args.config, args.set)
+    summary = run_batch(args.inputs, args.out, steps, config_dict(cfg), args.address, args.cpus_per_fit, args.size)
+    failed = [r for r in summary["jobs"] if r["status"] == "failed"]
+    for r in failed:
+        print(f"elicit batch: job {r['name']} failed: {r['error']}", file=sys.stderr)
+    n, counts = len(summary["jobs"]), summary["counts"]
+    print(f"{counts['done']} done, {counts['failed']} failed of {n}; summary: {args.out / 'summary.md'}")
+    if failed:
+        raise ElicitError(f"{len(failed)} of {n} jobs failed (their errors are above)")
+
+
 def _eval(args: argparse.Namespace) -> None:
     from .evaluate import evaluate_run
     from .subject import load_subject
@@ -239,6 +255,22 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", type=Path, default=Path("elicit-demo"))
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one fit config key")
     d.set_defaults(func=_demo)
+
+    b = sub.add_parser("batch", help="many avatars on Ray: prepare, fit, render and export each photo or subject")
+    b.add_argument("inputs", type=Path, nargs="+", help="photos, subject folders, or folders of them")
+    b.add_argument("--out", type=Path, required=True, help="batch folder: one job folder per input, summary.md")
+    b.add_argument("--steps", default="prepare,fit,render,export", help="comma-separated steps to run")
+    b.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
+    b.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
+    b.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key (or ablation=NAME)"
+    )
+    b.add_argument(
+        "--address", default=None, help="a Ray cluster (auto, HOST:PORT or ray://HOST:PORT); default: local Ray"
+    )
+    b.add_argument("--cpus-per-fit", type=positive_int, default=1, help="CPUs each job's threads use (default 1)")
+    b.add_argument("--size", type=positive_int, default=256, help="video and contact-sheet size in pixels")
+    b.set_defaults(func=_batch)
 
     e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
     e.add_argument("run", type=Path)

@@ -13,18 +13,16 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .animate import contact_sheet, load_avatar, render_sequence, write_video
+from .animate import NOVEL_MOTION, load_avatar, write_showcase
 from .avatar import AVATAR_FILE
 from .config import make_config
 from .export import export_glb
 from .io import write_json
 from .motions import builtin_motion
-from .rigs import read_rig, shipped_rig_path
 from .viewer import write_viewer
 
 DEMO_SEED = 0
 DEMO_MOTION = "walk_in_place"  # the training motion
-NOVEL_MOTION = "squat"  # shown only after fitting
 
 
 def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[str] | None = None) -> dict:
@@ -53,40 +51,17 @@ def run_demo(out: str | Path = "elicit-demo", size: int = 256, overrides: list[s
 
     t2 = time.perf_counter()
     avatar = load_avatar(run_dir)
-    orbit = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("orbit"))]
-    ring = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("ring"))]
-    turntable = render_sequence(avatar, orbit, subject.motion.select([subject.input_index]), desc="turntable")
-    write_video(out / "turntable.mp4", turntable)
-    novel = builtin_motion(NOVEL_MOTION, avatar.body)
-    front = [c.scaled(size / c.width) for c in read_rig(shipped_rig_path("input"))]
-    animation = render_sequence(avatar, [ring[2]], novel, desc="animation")  # a three-quarter view
-    write_video(out / "animation.mp4", animation)
+    shown = write_showcase(avatar, subject, out, size)
     times["render"] = time.perf_counter() - t2
-
-    # Contact sheet: input | front | side | back | novel pose.
-    cam_in = subject.cameras[subject.input_camera]
-    scale = size / max(cam_in.width, cam_in.height)
-    target = subject.image(subject.input_camera, subject.input_frame)
-    step = max(1, round(1 / scale))
-    tiles = [target[::step, ::step]]
-    input_pose = subject.motion.frame(subject.input_index)
-    for cam in (front[0], ring[len(ring) // 4], ring[len(ring) // 2]):
-        tiles.append(avatar.render_pose(cam, *input_pose)["rgb"])
-    tiles.append(animation[len(animation) // 2])
-    sheet = contact_sheet(
-        tiles, ["input", "front", "side", "back", f"novel pose ({NOVEL_MOTION})"], out / "contact_sheet.png"
-    )
     t3 = time.perf_counter()
-    glb = export_glb(avatar, out / "avatar.glb", novel)["path"]
+    glb = export_glb(avatar, out / "avatar.glb", builtin_motion(NOVEL_MOTION, avatar.body))["path"]
     page = write_viewer(glb, out / "viewer")
     times["export"] = time.perf_counter() - t3
     times["total"] = time.perf_counter() - t0
     summary = {
         "subject": str(subject_dir),
         "run": str(run_dir),
-        "turntable": str(out / "turntable.mp4"),
-        "animation": str(out / "animation.mp4"),
-        "contact_sheet": str(sheet),
+        **{key: str(path) for key, path in shown.items()},
         "avatar_glb": glb,
         "viewer": str(page),
         "seconds": times,

@@ -84,12 +84,46 @@ def grid_frame(grid, box: torch.Tensor, shape: tuple[int, ...]):
     return grid.make_frame(lo.tolist(), scale.tolist(), tuple(shape))
 
 
+def _cgroup_cpu_quota() -> int | None:
+    """CPUs allowed by a cgroup v2 quota (``cpu.max``: a container's ``--cpus``, a pod's limit), if any."""
+    try:
+        quota, period = open("/sys/fs/cgroup/cpu.max").read().split()[:2]
+    except (OSError, ValueError):
+        return None
+    if quota == "max":
+        return None
+    return max(1, int(int(quota) // int(period)))
+
+
+def cpus_given() -> int:
+    """The CPUs this process is given: its affinity mask (``taskset``), capped by a cgroup quota (a
+    container's limit) and by ``OMP_NUM_THREADS`` when set (Ray sets it to a task's ``num_cpus``)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        n = os.cpu_count() or 1
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    caps = [_cgroup_cpu_quota(), int(omp) if omp.isdigit() and int(omp) > 0 else None]
+    return max(1, min([n, *(c for c in caps if c is not None)]))
+
+
 def cpu_threads() -> int:
     """Threads used to split one CPU kernel launch (Warp runs a CPU launch on one thread)."""
-    env = os.environ.get("ELICIT_CPU_THREADS")
-    if env:
-        return max(1, int(env))
-    return max(1, min(os.cpu_count() or 1, 8))
+    return min(cpus_given(), 8)
+
+
+def size_thread_pools() -> int:
+    """Size torch's intra-op pool and Dr.Jit's (Mitsuba's) pool to :func:`cpus_given`, as the Warp launch
+    split already is, so that processes sharing a machine do not oversubscribe its cores; returns it."""
+    n = cpus_given()
+    torch.set_num_threads(n)
+    from .mesh_render import mitsuba
+
+    mitsuba()  # Dr.Jit is imported there, after its LLVM is located
+    import drjit as dr
+
+    dr.set_thread_count(n)
+    return n
 
 
 def launch_parts(n_items: int, device: torch.device) -> int:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ..avatar import AVATAR_FILE, LEGACY_FILE
 from ..config import FitConfig
+from ..device import size_thread_pools
 from ..subject import Subject
 from .checkpoint import CHECKPOINT, FitError
 from .trainer import Trainer
@@ -60,6 +61,7 @@ def fit(subject: Subject, cfg: FitConfig, run_dir: str | Path, resume: bool = Fa
     (also written to ``run_dir/run.json``). See :func:`prepare_run_folder` for ``resume`` and ``force``."""
     prepare_run_folder(Path(run_dir), resume, force)
     setup_logging(Path(run_dir))
+    logging.getLogger("elicit.fit").info("thread pools sized to %d CPUs", size_thread_pools())
     if cfg.baseline == "explicit_texture":
         from ..baseline import fit_baseline
 
