@@ -130,7 +130,7 @@ class Avatar(nn.Module):
             weight_res,
             config,
         )
-        avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), room)
+        avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), room, avatar.room_weight)
         if body_prior:
             avatar.field.init_from_body(verts, normals, room=room)
         avatar._body = body
@@ -145,6 +145,11 @@ class Avatar(nn.Module):
     def gate(self) -> float:
         """The inverse warp's gate in metres (``warp_gate``; avatars from before it existed used none)."""
         return float(self.config.get("warp_gate", 0.0))
+
+    @property
+    def room_weight(self) -> float:
+        """The room's share of the motion weights (``room_weight``; avatars from before it existed used 1)."""
+        return float(self.config.get("room_weight", 1.0))
 
     @property
     def device(self) -> torch.device:
@@ -238,7 +243,9 @@ class Avatar(nn.Module):
             sharpness=self.sharpness,
             gate=self.gate,
         )
-        fg = fg.clamp(max=1.0)  # a likelihood: bones whose candidates both carry weight must not add up past 1
+        # A likelihood: the room's share scaled back to 1, and bones whose candidates both carry weight must not
+        # add up past 1
+        fg = (fg / self.room_weight).clamp(max=1.0)
         f = self.field
         out = composite(
             samples,

@@ -54,6 +54,10 @@ class FitConfig:
     # Only bone candidates within this distance (metres) of the dominant bone's are blended (0: all), so a
     # hand hanging beside the hip is not averaged with the thigh into empty room (a dark fin there)
     warp_gate: float = 0.10
+    # The motion weights of the room outside the body (hair, loose clothing), as a share of the body's: in
+    # the inverse warp a limb's own bones then win over a neighbouring part's room (no doubled limbs where
+    # an arm hangs beside the torso); the render scales the room's foreground likelihood back to 1
+    room_weight: float = 0.3
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
@@ -137,6 +141,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (
     ("weight_grid", 2, 256),
     ("warp_sharpness", 1, 16),
     ("warp_gate", 0.0, 1.0),
+    ("room_weight", 0.01, 1.0),
     ("occupancy_cell", 0.0, 1.0),
     ("samples_per_ray", 1, 4096),
     ("t_thresh", 0.0, 0.5),

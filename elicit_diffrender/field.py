@@ -140,6 +140,9 @@ class CanonicalField(nn.Module):
         return (torch.log1p(2 * sigma**2) * where[block]).mean()
 
 
+ROOM_BLEND = 0.02  # metres outside the surface where the motion weights pass from the body's to the room's
+
+
 class MotionWeights(nn.Module):
     """Skinning weights over canonical space: softmax over (bones + background) logits on a grid."""
 
@@ -149,14 +152,18 @@ class MotionWeights(nn.Module):
         self.n_bones = n_bones
         self.logits = nn.Parameter(torch.zeros(n_bones + 1, resolution, resolution, resolution))
 
-    def init_from_body(self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, room: Room) -> None:
+    def init_from_body(
+        self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, room: Room, room_weight: float = 1.0
+    ) -> None:
         """Splat the body's (reduced) skinning weights (:func:`splat_weights`); the background takes over
-        beyond the ``room`` outside the surface."""
+        beyond the ``room`` outside the surface, and within it the bones keep ``room_weight`` of their weight
+        (1 on and inside the body, blending over the first few centimetres)."""
         shape = tuple(self.logits.shape[1:])
         pts = grid_points(self.box.double(), shape).reshape(-1, 3).numpy()
         bones = splat_weights(pts, vertices, weights)
         sdf = signed_distance(pts, vertices, normals)
-        fg = 1.0 / (1.0 + np.exp((sdf - room(pts)) / 0.02))
+        on_body = 1.0 / (1.0 + np.exp((sdf - ROOM_BLEND) / 0.01))
+        fg = (room_weight + (1.0 - room_weight) * on_body) / (1.0 + np.exp((sdf - room(pts)) / 0.02))
         probs = np.concatenate([bones * fg[:, None], (1.0 - fg)[:, None]], 1)
         logits = np.log(np.maximum(probs, 1e-8)).T.reshape(self.n_bones + 1, *shape)
         with torch.no_grad():

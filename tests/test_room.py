@@ -64,3 +64,48 @@ def test_hair_above_the_head_grows_the_room_there_only(subjects):
     probs = torch.softmax(grown.motion_weights.logits, 0)
     fg = 1 - sample_grid(probs[-1:], grown.motion_weights.box, torch.tensor(above[None], dtype=torch.float32))
     assert float(fg.detach()) > 0.9
+
+
+def test_a_room_weight_keeps_the_torso_beside_a_hanging_arm(anny_body):
+    """The torso's skin beside a hanging arm warps back to the canonical torso, not into the arm's room (which
+    would copy the torso there: a doubled limb in other poses, and a gap on the torso): with the room at a
+    third of the body's motion weight, the torso's own bones win. The room still renders: its foreground
+    likelihood is scaled back to 1."""
+    import math
+
+    from elicit_diffrender.body.template import vertex_normals
+    from elicit_diffrender.skinning import inverse_lbs
+
+    body = anny_body
+    pose = body.zero_pose().copy()
+    body.set_semantic(pose, "l_shoulder", (0.0, 0.0, -math.radians(35)))  # arms 35 degrees below Anny's A-pose
+    body.set_semantic(pose, "r_shoulder", (0.0, 0.0, math.radians(35)))
+    zero = np.zeros(3)
+    posed, canon = body.pose(pose, zero, zero).vertices, body.pose(body.canonical_pose()).vertices
+    share = body.reduced_weights()
+    arm_bones = [i for i, j in enumerate(body.reduced_joints) if any(k in j for k in ("arm", "wrist", "clavicle"))]
+    forearm = posed[share[:, [i for i in arm_bones if "upperarm" not in body.reduced_joints[i]]].sum(1) > 0.9]
+    trunk = np.flatnonzero(share[:, arm_bones].sum(1) < 0.05)
+    gap = np.array([np.linalg.norm(forearm - v, axis=1).min() for v in posed[trunk]])
+    normals = vertex_normals(canon, body.faces)
+    pick = trunk[gap < 0.08]  # torso and hip skin within 8 cm of a hanging forearm or hand: in the arm's room
+    assert len(pick) > 100
+    errors, in_room = {}, {}
+    for room_share in (1.0, 0.3):
+        config = {"warp_sharpness": 4, "warp_gate": 0.1, "room_weight": room_share}
+        avatar = Avatar.from_body(body, {"model": "anny"}, 0.03, MARGIN, config=config)
+        weights = avatar.motion_weights().detach()
+        x_c, _ = inverse_lbs(
+            torch.as_tensor(posed[pick], dtype=torch.float32),
+            avatar.obs_to_canonical(avatar.bone_transforms(pose, zero, zero)),
+            weights,
+            avatar.motion_weights.box,
+            sharpness=avatar.sharpness,
+            gate=avatar.gate,
+        )
+        errors[room_share] = float(np.median(np.linalg.norm(x_c.numpy() - canon[pick], axis=1)))
+        outside = torch.as_tensor(canon[pick] + 0.05 * normals[pick], dtype=torch.float32)
+        in_room[room_share] = float(sample_grid(weights, avatar.motion_weights.box, outside).sum(1).median())
+        assert min(1.0, in_room[room_share] / avatar.room_weight) > 0.8  # 5 cm out: rendered as foreground
+    assert 0.2 < in_room[0.3] / in_room[1.0] < 0.45  # the room's share of the motion weight
+    assert errors[0.3] < 0.5 * errors[1.0] and errors[0.3] < 0.03, errors
