@@ -54,10 +54,10 @@ class FitConfig:
     # Only bone candidates within this distance (metres) of the dominant bone's are blended (0: all), so a
     # hand hanging beside the hip is not averaged with the thigh into empty room (a dark fin there)
     warp_gate: float = 0.10
-    # The motion weights of the room outside the body (hair, loose clothing), as a share of the body's: in
-    # the inverse warp a limb's own bones then win over a neighbouring part's room (no doubled limbs where
-    # an arm hangs beside the torso); the render scales the room's foreground likelihood back to 1
-    room_weight: float = 0.3
+    # The motion weights of the room outside the body (hair, loose clothing), as a share of the body's (1: the
+    # same). Below 1 a limb's own bones win the inverse warp over a neighbouring part's room (0.3 keeps the
+    # torso beside a hanging arm out of the arm's room); the render scales the room's foreground back to 1
+    room_weight: float = 1.0
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
