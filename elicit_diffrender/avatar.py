@@ -151,6 +151,11 @@ class Avatar(nn.Module):
         """The room's share of the motion weights (``room_weight``; avatars from before it existed used 1)."""
         return float(self.config.get("room_weight", 1.0))
 
+    def foreground(self, summed_weights: torch.Tensor) -> torch.Tensor:
+        """The foreground likelihood of points whose bone weights sum to ``summed_weights``: the room's share
+        scaled back to 1, and clamped there (bones whose candidates both carry weight must not add up past 1)."""
+        return (summed_weights / self.room_weight).clamp(max=1.0)
+
     @property
     def device(self) -> torch.device:
         return self.field.density.device
@@ -243,9 +248,7 @@ class Avatar(nn.Module):
             sharpness=self.sharpness,
             gate=self.gate,
         )
-        # A likelihood: the room's share scaled back to 1, and bones whose candidates both carry weight must not
-        # add up past 1
-        fg = (fg / self.room_weight).clamp(max=1.0)
+        fg = self.foreground(fg)
         f = self.field
         out = composite(
             samples,

@@ -28,7 +28,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ElicitError
+from .errors import ElicitError, error_line
 from .io import write_json, write_text
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
@@ -134,13 +134,6 @@ def is_finished(job: Job, job_dir: Path, steps: tuple[str, ...]) -> bool:
     return record.get("status") == "failed" and record.get("input_stamp") == job.stamp()
 
 
-def _one_line(exc: BaseException) -> str:
-    if isinstance(exc, OSError) and exc.strerror:
-        return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
-    text = str(exc).strip().splitlines()
-    return text[0] if text else type(exc).__name__
-
-
 def run_job(job: Job, job_dir: Path, steps: tuple[str, ...], config: dict, render_size: int) -> dict:
     """Run one job's steps in this process, skipping those whose results exist; never raises: a failure
     is the job's ``status`` and one-line ``error`` (the traceback of an unexpected one in ``error.txt``)."""
@@ -187,9 +180,9 @@ def run_job(job: Job, job_dir: Path, steps: tuple[str, ...], config: dict, rende
             done.append("export")
         record["status"] = "done"
     except (ElicitError, OSError) as exc:
-        record.update(status="failed", error=_one_line(exc))
+        record.update(status="failed", error=error_line(exc))
     except Exception as exc:  # noqa: BLE001 - an unexpected failure ends this job, not the batch
-        record.update(status="failed", error=f"{type(exc).__name__}: {_one_line(exc)} (traceback in error.txt)")
+        record.update(status="failed", error=f"{type(exc).__name__}: {error_line(exc)} (traceback in error.txt)")
         write_text(job_dir / "error.txt", traceback.format_exc())
     record["steps_done"] = [s for s in STEPS if s in done]
     record["seconds"] = time.perf_counter() - t0
@@ -313,14 +306,14 @@ def run_batch(
                 memory = min(FIT_MEMORY, int(resources.get("memory", FIT_MEMORY)))
                 task = ray.remote(run_job).options(num_cpus=cpus_per_fit, memory=memory, max_retries=1)
                 pending = {task.remote(job, out / job.name, steps, config, render_size): job for job in todo}
+                show(bar, rows, min(len(pending), slots))
                 while pending:
-                    show(bar, rows, min(len(pending), slots))
                     (ref,), _ = ray.wait(list(pending), num_returns=1)
                     job = pending.pop(ref)
                     try:
                         ray.get(ref)
                     except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory)
-                        record = read_record(out / job.name) | {"status": "failed", "error": _one_line(exc)}
+                        record = read_record(out / job.name) | {"status": "failed", "error": error_line(exc)}
                         record.pop("input_stamp", None)
                         write_json(out / job.name / JOB_FILE, record)
                     rows[job.name] = job_row(job, out / job.name, out)

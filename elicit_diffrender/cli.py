@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
 from .config import PRESETS, FitConfig
-from .errors import ElicitError
+from .errors import ElicitError, error_line
 
 
 class Parser(argparse.ArgumentParser):
@@ -338,8 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"elicit {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a read-only folder, a full disk: nothing half-written is left in place
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"elicit {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"elicit {args.command}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"elicit {args.command}: interrupted", file=sys.stderr)

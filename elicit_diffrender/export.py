@@ -72,7 +72,7 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     with torch.no_grad():
         sigma = sample_grid(f.activated_density()[None].cpu(), f.box.cpu(), nodes)[:, 0]
         fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
-    volume = (sigma * (fg / avatar.room_weight).clamp(max=1.0)).reshape(shape).numpy()  # as the render
+    volume = (sigma * avatar.foreground(fg)).reshape(shape).numpy()
     level = SURFACE_DENSITY
     if volume.max() <= level:
         raise ExportError(f"the avatar has no opaque region to mesh (its density never reaches {level})")
