@@ -87,6 +87,8 @@ class Avatar(nn.Module):
         self.field = CanonicalField(box, voxel_size, activation, occupancy_cell)
         self.motion_weights = MotionWeights(box, len(reduced_joints), weight_res)
         self.pose_delta = nn.Parameter(torch.zeros(len(reduced_joints), 3))
+        # The body-model pose (pose, orient, transl, flattened) that ``pose_delta`` corrects; empty: none
+        self.register_buffer("refined_pose", torch.zeros(0, dtype=torch.float64))
         self._body: BodyModel | None = None
 
     # ---- construction ------------------------------------------------------------------------------
@@ -167,10 +169,29 @@ class Avatar(nn.Module):
         return self._body
 
     # ---- poses: a pose is the (B, 4, 4) world transforms of the reduced skeleton's bones ------------------
-    def bone_transforms(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> torch.Tensor:
-        """(B, 4, 4) world transforms of the reduced skeleton for one pose of the body model."""
+    def bone_transforms(
+        self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray, refine: bool = True
+    ) -> torch.Tensor:
+        """(B, 4, 4) world transforms of the reduced skeleton for one pose of the body model; the input pose
+        carries its learned correction (``refine_input_pose``) unless ``refine`` is off."""
         posed = self.body.pose(pose, global_orient, transl)
-        return torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32, device=self.device)
+        bones = torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32, device=self.device)
+        if refine and self.is_refined_pose(pose, global_orient, transl):
+            bones = self.refined(bones)
+        return bones
+
+    @staticmethod
+    def _flat_pose(pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.ravel(pose), np.ravel(global_orient), np.ravel(transl)]).astype(np.float64)
+
+    def set_refined_pose(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> None:
+        """Name the body-model pose that ``pose_delta`` corrects (the fit's input pose)."""
+        self.refined_pose = torch.as_tensor(self._flat_pose(pose, global_orient, transl), device=self.device)
+
+    def is_refined_pose(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> bool:
+        flat = self._flat_pose(pose, global_orient, transl)
+        ref = self.refined_pose.detach().cpu().numpy()
+        return ref.shape == flat.shape and bool(np.allclose(ref, flat, rtol=0.0, atol=1e-6))
 
     def refined(self, bones: torch.Tensor) -> torch.Tensor:
         """Apply the learned pose correction (a rotation per reduced joint, down the kinematic chain)."""
@@ -341,6 +362,7 @@ class Avatar(nn.Module):
                 data["weight_res"],
                 data["config"],
             )
+            avatar.refined_pose = t.setdefault("refined_pose", torch.zeros(0, dtype=torch.float64)).clone()
             avatar.load_state_dict(t)
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""

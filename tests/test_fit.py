@@ -109,6 +109,26 @@ def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
         load_avatar(tmp_path / "bad.safetensors")
 
 
+def test_the_refined_input_pose_travels_with_the_avatar(tmp_path, tiny_subject):
+    """A fit with ``refine_input_pose`` learns a correction, and the saved avatar renders the input pose (only)
+    with it: in ``render``, ``eval`` and the export alike, which all take bones from ``bone_transforms``."""
+    cfg = make_config("cpu-fast", None, TINY + ["refine_input_pose=true", "pose_lr=0.01"])
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    trainer.run()
+    assert trainer.avatar.pose_delta.abs().max() > 1e-3
+    back = load_avatar(tmp_path / "run")
+    inp, other = tiny_subject.motion.frame(tiny_subject.input_index), tiny_subject.motion.frame(2)
+    raw = back.bone_transforms(*inp, refine=False)
+    torch.testing.assert_close(back.bone_transforms(*inp), back.refined(raw))
+    assert (back.bone_transforms(*inp) - raw).abs().max() > 1e-4
+    torch.testing.assert_close(back.bone_transforms(*other), back.bone_transforms(*other, refine=False))
+    # An avatar fitted without it (or saved before the key existed) renders every pose as given.
+    state = back.state()
+    del state["tensors"]["refined_pose"]
+    plain = Avatar.from_state(state)
+    torch.testing.assert_close(plain.bone_transforms(*inp), raw)
+
+
 def test_a_body_outside_the_input_view_is_refused(tmp_path, tiny_subject):
     import shutil
 

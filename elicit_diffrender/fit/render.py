@@ -36,7 +36,7 @@ class PoseRenderer:
         self.samples_per_ray, self.t_thresh = samples_per_ray, t_thresh
         self.input_pose = subject.input_index
         self.refine_input_pose = refine_input_pose
-        self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p)) for p in poses}
+        self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p), refine=False) for p in poses}
         self._spaces: dict[int, tuple] = {}
         self._space_key = -1
 

@@ -95,6 +95,8 @@ class Trainer:
         ).to(self.device)
         self.avatar.motion_weights.logits.requires_grad_(cfg.learn_motion_weights)
         self.avatar.pose_delta.requires_grad_(cfg.refine_input_pose)
+        if cfg.refine_input_pose:
+            self.avatar.set_refined_pose(*subject.motion.frame(subject.input_index))
         self.views = FitViews.build(subject, cfg, self.device)
         poses = list(self.views.prior.rows)
         self.renderer = PoseRenderer(
