@@ -189,6 +189,7 @@ class Avatar(nn.Module):
         self.refined_pose = torch.as_tensor(self._flat_pose(pose, global_orient, transl), device=self.device)
 
     def is_refined_pose(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> bool:
+        """Whether ``bone_transforms`` corrects this body-model pose (the fit's input pose, when refined)."""
         flat = self._flat_pose(pose, global_orient, transl)
         ref = self.refined_pose.detach().cpu().numpy()
         return ref.shape == flat.shape and bool(np.allclose(ref, flat, rtol=0.0, atol=1e-6))

@@ -29,26 +29,24 @@ class PoseRenderer:
         poses: list[int],
         samples_per_ray: int,
         t_thresh: float,
-        refine_input_pose: bool,
         streams: RandomStreams,
     ) -> None:
         self.avatar, self.streams = avatar, streams
         self.samples_per_ray, self.t_thresh = samples_per_ray, t_thresh
         self.input_pose = subject.input_index
-        self.refine_input_pose = refine_input_pose
         self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p), refine=False) for p in poses}
+        # The poses the avatar itself corrects when it renders them (``Avatar.set_refined_pose``)
+        self._refined = {p for p in poses if avatar.is_refined_pose(*subject.motion.frame(p))}
         self._spaces: dict[int, tuple] = {}
         self._space_key = -1
 
     def bones(self, pose: int) -> torch.Tensor:
         """(B, 4, 4) bone transforms of a training pose, with the learned correction on the input pose."""
         bones = self._bones[pose]
-        if self.refine_input_pose and pose == self.input_pose:
-            return self.avatar.refined(bones)
-        return bones
+        return self.avatar.refined(bones) if pose in self._refined else bones
 
     def _moving(self, pose: int) -> bool:
-        return self.avatar.motion_weights.logits.requires_grad or (self.refine_input_pose and pose == self.input_pose)
+        return self.avatar.motion_weights.logits.requires_grad or pose in self._refined
 
     def refresh(self, step: int) -> None:
         """Drop the cached spaces of poses whose warp is learned, once every ``SPACE_REFRESH`` steps."""

@@ -99,9 +99,7 @@ class Trainer:
             self.avatar.set_refined_pose(*subject.motion.frame(subject.input_index))
         self.views = FitViews.build(subject, cfg, self.device)
         poses = list(self.views.prior.rows)
-        self.renderer = PoseRenderer(
-            self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, cfg.refine_input_pose, self.streams
-        )
+        self.renderer = PoseRenderer(self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams)
         self.objective = Objective(cfg, self.views, self.renderer, self.streams, body)
         self.guard = EmptyRenderGuard(self.avatar, self.renderer, self.views.input)
         self.make_optimizer()
