@@ -33,6 +33,7 @@ class PoseDetection:
     landmarks: np.ndarray | None  # (33, 3) x, y (pixels), visibility; None when no person was found
     segmentation: np.ndarray  # (H, W) probability of the person Pose tracks
     people: np.ndarray  # (H, W) probability of any person (selfie segmentation)
+    world: np.ndarray | None = None  # (33, 3) metric landmarks, camera axes (x right, y down, z away)
 
 
 def mediapipe_python() -> str | None:
@@ -67,4 +68,11 @@ def detect_pose(image_path: str | Path) -> PoseDetection:
             raise MediaPipeUnavailable(f"MediaPipe failed on {image_path} with {python}: {tail[0]}; {INSTALL_HINT}")
         with np.load(out, allow_pickle=False) as data:
             lm = data["landmarks"]
-            return PoseDetection(lm if lm.shape[0] == 33 else None, data["segmentation"], data["people"])
+            world = data["world"] if "world" in data.files else None
+            found = lm.shape[0] == 33
+            return PoseDetection(
+                lm if found else None,
+                data["segmentation"],
+                data["people"],
+                world if found and world is not None and world.shape == (33, 3) else None,
+            )

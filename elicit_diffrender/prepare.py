@@ -194,9 +194,17 @@ def prepare(
                 raise PrepareError(f"{photo}: keypoints are needed for the body fit and {missing}")
             raise PrepareError(f"{photo}: no person found by MediaPipe")
         sources["keypoints"] = "MediaPipe pose (33 landmarks)" if landmarks is not None else "none"
+        has_world = detection is not None and detection.world is not None
+        sources["body_directions"] = "MediaPipe metric landmarks" if has_world else "keypoints and silhouette only"
         sources["joints3d"] = f"{params_path} pred_joints" if joints3d is not None else "none"
         fit = fit_anny_to_image(
-            K, mask, landmarks, joints3d, FIT_STEPS if steps is None else steps, mitsuba_silhouette(camera, RENDER_SIZE)
+            K,
+            mask,
+            landmarks,
+            joints3d,
+            FIT_STEPS if steps is None else steps,
+            mitsuba_silhouette(camera, RENDER_SIZE),
+            world_landmarks=detection.world if detection is not None else None,
         )
         body = fit["body"]
         spec = {"model": "anny", "phenotype": {k: round(v, 4) for k, v in fit["phenotype"].items()}}

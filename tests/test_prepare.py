@@ -53,6 +53,15 @@ def test_missing_mediapipe_gives_install_hint(tmp_path, monkeypatch):
         prepare(tmp_path / "p.png", tmp_path / "out")
 
 
+def line_yaw_deg(subject, camera, joints: tuple[str, str]) -> float:
+    """Turn about the camera's vertical of the line from joint 2 to joint 1 at the input frame, in degrees."""
+    body = subject.body
+    posed = body.pose(*subject.motion.frame(subject.input_index))
+    a, b = (camera.R @ posed.bone_transforms[body.joint_index(j), :3, 3] + camera.T for j in joints)
+    d = a - b
+    return float(np.degrees(np.arctan2(d[2], d[0])))
+
+
 @pytest.fixture(scope="module")
 def synthetic_photo(tmp_path_factory):
     root = synthesize(11, tmp_path_factory.mktemp("photo") / "s", size=384, spp=8, n_cameras=1, texture_size=512)
@@ -70,6 +79,15 @@ def test_prepare_a_synthetic_photo(tmp_path, synthetic_photo):
     prepared = load_subject(tmp_path / "out")
     assert prepared.body_spec["model"] == "anny" and len(prepared.motion) > 10
     assert (tmp_path / "out" / "overlay.png").is_file()
+    # MediaPipe's metric landmarks fix the body's turn and limbs: the prepared shoulder and hip lines point where the
+    # ground-truth body's do, seen from the camera (keypoints and silhouette alone left 17-26 degrees).
+    assert report["sources"]["body_directions"] == "MediaPipe metric landmarks"
+    assert {"shoulders", "hips", "trunk"} <= set(report["line_direction_error_deg"])
+    assert max(report["line_direction_error_deg"].values()) < 15.0
+    for joints in (("upperarm01.L", "upperarm01.R"), ("upperleg01.L", "upperleg01.R")):
+        yaw_true = line_yaw_deg(s, s.cameras["cam00"], joints)
+        yaw_prepared = line_yaw_deg(prepared, prepared.cameras["input"], joints)
+        assert abs(yaw_prepared - yaw_true) < 8.0, (joints, yaw_prepared, yaw_true)
     # Without a mask or alpha the mask comes from MediaPipe.
     report = prepare(photo, tmp_path / "out2", steps=50)
     assert report["sources"]["mask"] == "MediaPipe pose segmentation" and "default" in report["sources"]["focal"]

@@ -5,8 +5,12 @@ Both fits share one differentiable Anny forward (:class:`AnnyFit`). The 3D fit m
 to the SMPL joints they correspond to (CLIFF's ``pred_joints``). The image fit matches projected
 joints and mesh points to MediaPipe's 33 landmarks (``KEYPOINTS``) and the mesh to the person mask
 (every vertex inside the mask; every mask pixel near some vertex), coarse to fine, from two starts
-(facing the camera or away) so that a mirrored body is escaped. Priors keep the pose near rest
-(and knees and elbows bending the right way) and the phenotype near average.
+(facing the camera or away) so that a mirrored body is escaped. Keypoints and a silhouette leave
+depth nearly free (the body's turn about the vertical, how far a limb reaches towards the camera);
+MediaPipe's metric landmarks fix it: the model's shoulder, hip and trunk lines and its visible limb
+segments (``WORLD_LINES``) are pulled onto theirs, as directions only (their lengths would drive the
+phenotype). Priors keep the pose near rest (and knees and elbows bending the right way) and the
+phenotype near average.
 """
 
 from __future__ import annotations
@@ -67,6 +71,15 @@ KEYPOINTS = {
     29: ("vertex", "heel.L"), 30: ("vertex", "heel.R"), 31: ("vertex", "toe.L"), 32: ("vertex", "toe.R"),
 }  # fmt: skip
 TORSO_KEYPOINTS = (11, 12, 23, 24)
+WORLD_WEIGHT = 1.0  # weight of the metric-landmark direction term against the keypoint term
+# The body's lines that MediaPipe's metric landmarks fix: name -> (from, to), each the mean of landmarks.
+WORLD_LINES = {
+    "shoulders": ((12,), (11,)), "hips": ((24,), (23,)), "trunk": ((23, 24), (11, 12)),
+    "left_upper_arm": ((11,), (13,)), "right_upper_arm": ((12,), (14,)), "left_forearm": ((13,), (15,)),
+    "right_forearm": ((14,), (16,)), "left_thigh": ((23,), (25,)), "right_thigh": ((24,), (26,)),
+    "left_shin": ((25,), (27,)), "right_shin": ((26,), (28,)),
+}  # fmt: skip
+TORSO_LINES = ("shoulders", "hips", "trunk")  # the lines the coarse (placement-only) stage matches
 # Bending the wrong way costs: the knee's flexion axis is +x (world), the elbow's -x in the rest frame.
 HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lowerarm01.R": -1.0}
 
@@ -241,6 +254,16 @@ def _rendered_silhouette_loss(fit: AnnyFit, mask: np.ndarray, render: Silhouette
     return loss
 
 
+def line_directions(points: dict[int, torch.Tensor], names) -> torch.Tensor:
+    """Unit directions (N, 3) of the ``WORLD_LINES`` named ``names``, from landmark index -> (3,) point."""
+    lines = []
+    for name in names:
+        start, end = (torch.stack([points[k] for k in ends]).mean(0) for ends in WORLD_LINES[name])
+        lines.append(end - start)
+    out = torch.stack(lines)
+    return out / out.norm(dim=1, keepdim=True).clamp(min=1e-9)
+
+
 def fit_anny_to_image(
     K: np.ndarray,
     mask: np.ndarray,
@@ -249,11 +272,14 @@ def fit_anny_to_image(
     steps: int = FIT_STEPS,
     render_silhouette: SilhouetteFactory | None = None,
     render_steps: int = RENDER_STEPS,
+    world_landmarks: np.ndarray | None = None,
 ) -> dict:
     """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
     visibility, pixels) and/or camera-space SMPL joints, then the silhouette: first a fast
     point-to-mask distance, then ``render_steps`` steps on the differentiable silhouette that
-    ``render_silhouette(faces, n_vertices)`` renders (skipped without one)."""
+    ``render_silhouette(faces, n_vertices)`` renders (skipped without one). ``world_landmarks`` (33, 3),
+    MediaPipe's metric landmarks in camera axes, fix the directions of the body's ``WORLD_LINES``: the torso's
+    from the coarse stage on, the visible limbs' in the fine stages (``WORLD_WEIGHT``)."""
     if keypoints is None and joints3d is None:
         raise ValueError("the image fit needs 2D keypoints or 3D joints")
     targets = ImageTargets(K, mask, keypoints)
@@ -294,6 +320,29 @@ def fit_anny_to_image(
         robust = d / (d + 0.02**2)  # Geman-McClure, 2% of the image as scale
         w = vis if rows is None else vis * torch.zeros_like(vis).index_fill(0, rows, 1.0)
         return (robust * w).sum() / w.sum().clamp(min=1)
+
+    # Lines whose landmarks are all visible in the photo (the torso's always count).
+    used = {k for ends in WORLD_LINES.values() for e in ends for k in e}
+    seen = {k for k in used if keypoints is None or keypoints[k, 2] > 0.5}
+    lines_used = [n for n, ends in WORLD_LINES.items() if n in TORSO_LINES or set(ends[0] + ends[1]) <= seen]
+    world_goal = None
+    if world_landmarks is not None:
+        world = torch.as_tensor(np.asarray(world_landmarks), dtype=torch.float64)
+        directions = line_directions({k: world[k] for k in used}, lines_used)
+        world_goal = dict(zip(lines_used, directions, strict=True))
+
+    def model_lines(verts, heads, names) -> torch.Tensor:
+        kp = model_keypoints(verts, heads)
+        return line_directions({k: kp[kp_ids.index(k)] for k in used}, names)
+
+    def world_loss(verts, heads, names=None):
+        """``sum (1 - cos(model line, MediaPipe line))`` over the lines ``names`` (default: every usable
+        one); 0 without metric landmarks."""
+        if world_goal is None:
+            return torch.zeros((), dtype=torch.float64)
+        names = lines_used if names is None else names
+        goal = torch.stack([world_goal[n] for n in names])
+        return (1.0 - (model_lines(verts, heads, names) * goal).sum(1)).sum()
 
     def j3_loss(heads):
         return ((heads[anny_ids] - torch.as_tensor(joints3d[:24][smpl_ids])) ** 2).sum(1).mean()
@@ -337,12 +386,13 @@ def fit_anny_to_image(
         def coarse():
             verts, heads = fit()
             loss = j3_loss(heads) if joints3d is not None else kp_loss(verts, heads, torso_rows)
-            return loss + 1e-3 * (fit.pheno**2).sum()
+            return loss + WORLD_WEIGHT * world_loss(verts, heads, TORSO_LINES) + 1e-3 * (fit.pheno**2).sum()
 
         loss = _optimise(fit, [fit.g_rot, fit.g_t, fit.pheno], coarse, 60, 0.05)
         if keypoints is not None:
             with torch.no_grad():
-                loss = float(kp_loss(*fit()))
+                verts, heads = fit()
+                loss = float(kp_loss(verts, heads) + WORLD_WEIGHT * world_loss(verts, heads, TORSO_LINES))
         if best is None or loss < best[0]:
             best = (loss, {k: v.detach().clone() for k, v in fit.state_dict().items()})
     fit.load_state_dict(best[1])
@@ -350,7 +400,7 @@ def fit_anny_to_image(
     def fine(with_silhouette: bool):
         def loss():
             verts, heads = fit()
-            total = 1e-3 * fit.prior()
+            total = 1e-3 * fit.prior() + WORLD_WEIGHT * world_loss(verts, heads)
             if keypoints is not None:
                 total = total + kp_loss(verts, heads)
             if joints3d is not None:
@@ -379,6 +429,10 @@ def fit_anny_to_image(
                 "mean": float(err.mean()),
                 "per_keypoint": {int(k): float(e) for k, e in zip(np.array(kp_ids)[vis.numpy() > 0], err, strict=True)},
             }
+        if world_goal is not None:
+            cos = (model_lines(verts, heads, lines_used) * torch.stack([world_goal[n] for n in lines_used])).sum(1)
+            angles = torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).numpy()
+            report["line_direction_error_deg"] = dict(zip(lines_used, map(float, angles), strict=True))
         if joints3d is not None:
             report["joint_error_mm"] = float(
                 np.median((heads[anny_ids] - torch.as_tensor(np.asarray(joints3d)[:24][smpl_ids])).norm(dim=1).numpy())
