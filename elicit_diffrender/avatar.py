@@ -3,7 +3,8 @@
 Rendering a (pose, camera): the body model gives the reduced skeleton's bone transforms for the pose;
 the canonical occupancy grid, forward-warped with the motion weights, bounds and fills an
 observation-space occupancy grid; rays are sampled only inside it, warped to canonical space by
-the Warp skinning kernel, and composited by the Warp ray marcher.
+the Warp skinning kernel (during a fit, by one look-up in the pose's baked warp), and composited by
+the Warp ray marcher.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from .errors import ElicitError
 from .field import CanonicalField, MotionWeights, Room, grid_points, grid_shape, signed_distance
 from .geometry import axis_angle_to_matrix, rigid_inverse
 from .io import write_tensors
-from .skinning import inverse_lbs
+from .skinning import inverse_lbs, lookup_baked_warp
 from .volume import composite, sample_rays
 
 FORMAT = "elicit-avatar/2"  # a safetensors file: the tensors, and the rest as JSON in its header
@@ -245,6 +246,43 @@ class Avatar(nn.Module):
         occ = F.max_pool3d(occ[None, None], 3, 1, 1)[0, 0]
         return box, occ.to(torch.uint8)
 
+    @torch.no_grad()
+    def bake_warp(self, bones: torch.Tensor, box: torch.Tensor, cell: float, chunk: int = 1 << 18) -> torch.Tensor:
+        """The inverse warp of a pose as a look-up table: (X, Y, Z, 4) summed bone weight ``fg`` times canonical
+        position, and ``fg``, at the nodes of a lattice ``cell`` metres apart over the observation-space ``box``.
+
+        Trilinear look-ups in it (:meth:`warp_points`) replace the per-bone warp of every sample while the
+        motion weights and the pose are fixed. The position is weighted by ``fg`` so that nodes outside every
+        bone's reach (``fg = 0``, position meaningless) do not pull a look-up beside them; between nodes where
+        the warp jumps (a gate between two limbs) a look-up blends the two sides.
+        """
+        shape = grid_shape(box.cpu(), cell)
+        nodes = grid_points(box.double().cpu(), shape).reshape(-1, 3).to(torch.float32).to(self.device)
+        obs_to_canonical, weights = self.obs_to_canonical(bones), self.motion_weights().detach()
+        out = []
+        for s in range(0, nodes.shape[0], chunk):
+            x_c, fg = inverse_lbs(
+                nodes[s : s + chunk], obs_to_canonical, weights, self.motion_weights.box, sharpness=self.sharpness,
+                gate=self.gate,
+            )  # fmt: skip
+            out.append(torch.cat([x_c * fg[:, None], fg[:, None]], 1))
+        return torch.cat(out).reshape(*shape, 4)
+
+    def warp_points(
+        self, points: torch.Tensor, bones: torch.Tensor, baked: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Observation-space points (N, 3) -> canonical points (N, 3) and foreground likelihood (N,): the exact
+        inverse warp, or trilinear look-ups in ``baked`` = (table, box) from :meth:`bake_warp`."""
+        if baked is not None:
+            x_c, fg = lookup_baked_warp(points, *baked)
+            return x_c, self.foreground(fg)
+        weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
+        x_c, fg = inverse_lbs(
+            points, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness,
+            gate=self.gate,
+        )  # fmt: skip
+        return x_c, self.foreground(fg)
+
     def render_rays(
         self,
         origins: torch.Tensor,
@@ -257,20 +295,13 @@ class Avatar(nn.Module):
         outputs: tuple[str, ...] = ("rgb", "alpha"),
         t_thresh: float = 1e-3,
         space: tuple[torch.Tensor, torch.Tensor | None] | None = None,
+        baked: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Render rays in the pose ``bones`` (B, 4, 4); colour is composited over ``background``."""
+        """Render rays in the pose ``bones`` (B, 4, 4); colour is composited over ``background``. ``baked``:
+        the pose's warp as a look-up table (:meth:`bake_warp`, with its box) instead of the exact warp."""
         box, occ = space if space is not None else self.observation_space(bones.detach())
         samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
-        weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
-        x_c, fg = inverse_lbs(
-            samples.positions,
-            self.obs_to_canonical(bones),
-            weights,
-            self.motion_weights.box,
-            sharpness=self.sharpness,
-            gate=self.gate,
-        )
-        fg = self.foreground(fg)
+        x_c, fg = self.warp_points(samples.positions, bones, baked)
         f = self.field
         out = composite(
             samples,

@@ -61,6 +61,9 @@ class FitConfig:
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
+    # While the motion weights and a training pose are fixed, that pose's inverse warp is baked into a look-up
+    # table with nodes this far apart (metres) and read trilinearly (0 = the exact per-bone warp for every sample)
+    warp_cell: float = 0.02
     # --- rendering -----------------------------------------------------------------------------
     samples_per_ray: int = 48
     t_thresh: float = 1e-3  # early ray termination below this transmittance (0 = off)
@@ -143,6 +146,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (
     ("warp_gate", 0.0, 1.0),
     ("room_weight", 0.01, 1.0),
     ("occupancy_cell", 0.0, 1.0),
+    ("warp_cell", 0.0, 1.0),
     ("samples_per_ray", 1, 4096),
     ("t_thresh", 0.0, 0.5),
     ("input_scale", 1e-3, 1.0),

@@ -10,6 +10,7 @@ import torch
 
 from .device import grid_frame, launch, launch_parts, to_warp, warp_scalar
 from .kernels.skinning import (
+    baked_warp_lookup,
     forward_lbs_backward,
     forward_lbs_forward,
     inverse_lbs_backward,
@@ -152,6 +153,25 @@ def inverse_lbs(
     return _InverseLBS.apply(
         points.contiguous(), rot, trans, weights.contiguous(), box, float(eps), int(sharpness), float(gate)
     )
+
+
+def lookup_baked_warp(
+    points: torch.Tensor, table: torch.Tensor, box: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Canonical points (P, 3) and summed bone weights (P,) of observation-space ``points`` (P, 3) from a baked
+    warp: ``table`` (X, Y, Z, 4) holds ``(fg * x_c, fg)`` at the nodes of a lattice over ``box`` (2, 3); not
+    differentiable (the table is a constant of the fit)."""
+    if table.ndim != 4 or table.shape[3] != 4 or min(table.shape[:3]) < 2:
+        raise ValueError(f"table must be (X, Y, Z, 4) with at least 2 nodes per axis, got {tuple(table.shape)}")
+    k = baked_warp_lookup(warp_scalar(points.dtype))
+    st = skinning_types(warp_scalar(points.dtype))
+    points = points.detach().contiguous()
+    out_x = torch.empty_like(points)
+    out_fg = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
+    frame = grid_frame(st.grid, box.detach().cpu(), table.shape[:3])
+    args = [to_warp(points, dtype=st.vec3), to_warp(table.contiguous(), dtype=k.vec4), frame]
+    launch(k.kernel, points.shape[0], points.device, [*args, to_warp(out_x, dtype=st.vec3), to_warp(out_fg)])
+    return out_x, out_fg
 
 
 class _ForwardLBS(torch.autograd.Function):

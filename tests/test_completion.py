@@ -129,3 +129,25 @@ def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):
     # A back cell copies a front source lit 1 + cos, so its target is darker by that factor.
     assert (pairs.gains[torch.as_tensor(back)] < 0.8).float().mean() > 0.9
     assert torch.allclose(target, (torch.sigmoid(torch.tensor(1.0)) * pairs.gains[:, None]).clamp(max=1.0), atol=1e-6)
+
+
+def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
+    """The targets' sparse blur matrix reads the colour grid as trilinear look-ups at each source and six points
+    ``BLUR_VOXELS`` cells around it do, border-clamped where they leave the box."""
+    from elicit_diffrender.avatar import sample_grid
+    from elicit_diffrender.fit.completion import BLUR_VOXELS
+
+    verts, normals = _canonical(anny_body)
+    parts = anny_body.vertex_parts()
+    centre_z = np.array([verts[parts == k, 2].mean() for k in range(len(PART_NAMES))])
+    box = torch.tensor(np.stack([verts.min(0) - 0.06, verts.max(0) + 0.06]), dtype=torch.float32)
+    field = CanonicalField(box, 0.04)
+    with torch.no_grad():
+        field.color.copy_(torch.randn(field.color.shape, generator=torch.Generator().manual_seed(0)))
+    pairs = MirrorCompletion.build(field, verts, normals, parts, verts[:, 2] > centre_z[parts], margin=0.05)
+    step = BLUR_VOXELS * field.voxel_size
+    offsets = [torch.zeros(3)] + [sign * step * torch.eye(3)[k] for k in range(3) for sign in (1.0, -1.0)]
+    grid = field.color.detach().permute(3, 0, 1, 2)
+    logits = torch.stack([sample_grid(grid, field.box, pairs.sources + o) for o in offsets]).mean(0)
+    assert (pairs.sources + step > box[1]).any() or (pairs.sources - step < box[0]).any()  # the border is met
+    torch.testing.assert_close(pairs.targets(field), torch.sigmoid(logits).clamp(0, 1), atol=2e-5, rtol=0)

@@ -83,6 +83,49 @@ def test_without_occupancy_skipping_the_body_is_still_rendered(tiny_subject, tin
     assert np.abs(a - b).mean() < 0.02
 
 
+def test_a_baked_warp_renders_like_the_exact_one(tiny_subject, tiny_avatar):
+    """A pose's warp baked into a 2 cm look-up table: near the body the canonical points are those of the exact
+    warp (the warp is rigid within each bone's region), and the render barely changes. The fit bakes only
+    poses whose warp is fixed."""
+    from elicit_diffrender.fit.render import PoseRenderer
+    from elicit_diffrender.fit.streams import RandomStreams
+
+    avatar, subject = tiny_avatar, tiny_subject
+    bones = avatar.bone_transforms(*subject.motion.frame(3))
+    box, _ = avatar.observation_space(bones)
+    table = avatar.bake_warp(bones, box, 0.02)
+    assert table.shape == (*(int(n) for n in ((box[1] - box[0]) / 0.02).ceil() + 1), 4)
+    verts = torch.as_tensor(subject.body.pose(*subject.motion.frame(3)).vertices, dtype=torch.float32)
+    near = verts + 0.02 * torch.randn(verts.shape, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        exact, fg_exact = avatar.warp_points(near, bones)
+        looked, fg_looked = avatar.warp_points(near, bones, (table, box))
+    err = (looked - exact).norm(dim=1)[fg_exact > 0.5]
+    assert err.median() < 1e-3 and (err > 0.01).float().mean() < 0.01, (err.median(), (err > 0.01).float().mean())
+    assert (fg_looked - fg_exact).abs().mean() < 0.02
+    none, fg_none = avatar.warp_points(torch.zeros(0, 3), bones, (table, box))  # a crop that misses the body
+    assert none.shape == (0, 3) and none.is_contiguous() and fg_none.shape == (0,)
+    cam = subject.cameras["cam01"].scaled(0.5)
+    origins, dirs = cam.rays()
+    with torch.no_grad():
+        a = avatar.render_rays(origins, dirs, bones, 32, torch.zeros(3))
+        b = avatar.render_rays(origins, dirs, bones, 32, torch.zeros(3), baked=(table, box))
+    assert a["alpha"].mean() > 0.04
+    assert (a["alpha"] - b["alpha"]).abs().mean() < 0.01 and (a["rgb"] - b["rgb"]).abs().mean() < 0.01
+    # The fit's renderer bakes fixed warps only: not while the motion weights learn, not the refined input pose.
+    poses = [subject.input_index, 3]
+    learned = avatar.motion_weights.logits.requires_grad
+    try:
+        avatar.motion_weights.logits.requires_grad_(False)
+        renderer = PoseRenderer(avatar, subject, poses, 24, 1e-3, RandomStreams.from_seed(0), warp_cell=0.02)
+        assert renderer.baked(3) is not None and renderer.baked(subject.input_index) is not None
+        assert PoseRenderer(avatar, subject, poses, 24, 1e-3, RandomStreams.from_seed(0)).baked(3) is None
+        avatar.motion_weights.logits.requires_grad_(True)
+        assert renderer.baked(3) is None
+    finally:
+        avatar.motion_weights.logits.requires_grad_(learned)
+
+
 def test_avatar_file_round_trip(tmp_path, tiny_subject, tiny_avatar):
     path = tiny_avatar.save(tmp_path / "avatar.safetensors")
     back = load_avatar(path)

@@ -27,13 +27,13 @@ A vertex is seen when it faces the input camera, projects inside the input mask 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from ..avatar import sample_grid
 from ..body import PART_NAMES
 from ..cameras import Camera
 from ..field import CanonicalField, grid_points, signed_distance
@@ -72,6 +72,7 @@ class MirrorCompletion:
     unseen: int  # unseen cells near the body
     _target: torch.Tensor | None = None
     _key: int = -1
+    _blur: torch.Tensor | None = None  # (N, cells) sparse: the blur's trilinear weights of every colour cell
 
     @classmethod
     def build(
@@ -152,16 +153,42 @@ class MirrorCompletion:
     def __len__(self) -> int:
         return int(self.cells.numel())
 
+    def blur_matrix(self, field: CanonicalField) -> torch.Tensor:
+        """(N, X*Y*Z) sparse: row ``i`` averages the trilinear look-ups (border-clamped, nodes on the box's
+        corners) of the colour grid at source ``i`` and the six points ``BLUR_VOXELS`` cells around it. The
+        sources are fixed, so this is built once and every refresh of the targets is one sparse product."""
+        if self._blur is None:
+            step = BLUR_VOXELS * field.voxel_size
+            eye = torch.eye(3, dtype=torch.float64)
+            offsets = torch.cat([torch.zeros(1, 3, dtype=torch.float64), step * eye, -step * eye])
+            points = (self.sources.double().cpu()[:, None, :] + offsets[None]).reshape(-1, 3)
+            box, shape = field.box.double().cpu(), torch.tensor(field.shape)
+            f = ((points - box[0]) / (box[1] - box[0]) * (shape - 1)).clamp(min=torch.zeros(3), max=shape - 1.0)
+            base = torch.minimum(f.floor().long(), shape - 2)
+            frac = f - base
+            rows = torch.arange(len(self)).repeat_interleave(offsets.shape[0])
+            index, weight = [], []
+            for corner in range(8):
+                bit = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2])
+                node = base + bit
+                index.append((node[:, 0] * shape[1] + node[:, 1]) * shape[2] + node[:, 2])
+                weight.append(torch.where(bit.bool(), frac, 1.0 - frac).prod(1) / offsets.shape[0])
+            coo = torch.sparse_coo_tensor(
+                torch.stack([rows.repeat(8), torch.cat(index)]),
+                torch.cat(weight).float(),
+                (len(self), int(shape.prod())),
+                check_invariants=True,
+            ).coalesce()
+            with warnings.catch_warnings():  # "sparse CSR support is in beta": its product is 6x COO's here
+                warnings.simplefilter("ignore", UserWarning)
+                self._blur = coo.to_sparse_csr().to(self.sources.device)
+        return self._blur
+
     @torch.no_grad()
     def targets(self, field: CanonicalField) -> torch.Tensor:
         """(N, 3) the relit, blurred colour at every cell's source."""
-        step = BLUR_VOXELS * field.voxel_size
-        eye = torch.eye(3, device=self.sources.device)
-        offsets = torch.cat([torch.zeros(1, 3, device=eye.device), step * eye, -step * eye])
-        stencil = (self.sources[:, None, :] + offsets[None]).reshape(-1, 3)
-        logits = sample_grid(field.color.detach().permute(3, 0, 1, 2), field.box, stencil)
-        color = torch.sigmoid(logits.reshape(len(self), offsets.shape[0], 3).mean(1))
-        return (color * self.gains[:, None]).clamp(0.0, 1.0)
+        logits = torch.sparse.mm(self.blur_matrix(field), field.color.detach().reshape(-1, 3))
+        return (torch.sigmoid(logits) * self.gains[:, None]).clamp(0.0, 1.0)
 
     def state(self) -> dict:
         """The current targets (a resumed fit continues with the same ones)."""

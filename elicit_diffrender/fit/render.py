@@ -17,7 +17,9 @@ class PoseRenderer:
     """Differentiable crops and full images of the avatar in the subject's motion poses.
 
     The observation-space box and occupancy of a pose are cached; when the motion weights (or the
-    refined input pose) are being learned they are rebuilt every ``SPACE_REFRESH`` steps. Training
+    refined input pose) are being learned they are rebuilt every ``SPACE_REFRESH`` steps. The warp of a
+    pose whose warp is fixed is baked into a look-up table of ``warp_cell`` metres once (0: every sample
+    takes the exact per-bone warp). Training
     renders jitter their samples with seeds from ``streams.jitter``; renders without gradients draw
     nothing from any stream.
     """
@@ -30,14 +32,16 @@ class PoseRenderer:
         samples_per_ray: int,
         t_thresh: float,
         streams: RandomStreams,
+        warp_cell: float = 0.0,
     ) -> None:
-        self.avatar, self.streams = avatar, streams
+        self.avatar, self.streams, self.warp_cell = avatar, streams, warp_cell
         self.samples_per_ray, self.t_thresh = samples_per_ray, t_thresh
         self.input_pose = subject.input_index
         self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p), refine=False) for p in poses}
         # The poses the avatar itself corrects when it renders them (``Avatar.set_refined_pose``)
         self._refined = {p for p in poses if avatar.is_refined_pose(*subject.motion.frame(p))}
         self._spaces: dict[int, tuple] = {}
+        self._baked: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._space_key = -1
 
     def bones(self, pose: int) -> torch.Tensor:
@@ -60,6 +64,15 @@ class PoseRenderer:
             self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach())
         return self._spaces[pose]
 
+    def baked(self, pose: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The pose's warp as a look-up table and its box, while the warp is fixed and ``warp_cell`` > 0."""
+        if self.warp_cell <= 0 or self._moving(pose):
+            return None
+        if pose not in self._baked:
+            box = self.space(pose)[0]
+            self._baked[pose] = (self.avatar.bake_warp(self.bones(pose).detach(), box, self.warp_cell), box)
+        return self._baked[pose]
+
     def render(
         self, camera: Camera, pose: int, background: torch.Tensor, outputs=("rgb", "alpha"), grad: bool = True
     ) -> dict[str, torch.Tensor]:
@@ -77,6 +90,7 @@ class PoseRenderer:
                 outputs=outputs,
                 t_thresh=self.t_thresh,
                 space=self.space(pose),
+                baked=self.baked(pose),
             )
         h, w = camera.height, camera.width
         res = {"alpha": out["alpha"].reshape(1, h, w)}

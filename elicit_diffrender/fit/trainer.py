@@ -27,7 +27,7 @@ from .streams import RandomStreams
 from .views import FitViews
 
 log = logging.getLogger("elicit.fit")
-ADAM = {"betas": (0.9, 0.99), "eps": 1e-8}
+ADAM = {"betas": (0.9, 0.99), "eps": 1e-8, "fused": True}  # fused: one pass over each grid per step
 PREVIEW_SIZE = 160
 
 
@@ -99,7 +99,9 @@ class Trainer:
             self.avatar.set_refined_pose(*subject.motion.frame(subject.input_index))
         self.views = FitViews.build(subject, cfg, self.device)
         poses = list(self.views.prior.rows)
-        self.renderer = PoseRenderer(self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams)
+        self.renderer = PoseRenderer(
+            self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams, cfg.warp_cell
+        )
         self.objective = Objective(cfg, self.views, self.renderer, self.streams, body)
         self.guard = EmptyRenderGuard(self.avatar, self.renderer, self.views.input)
         self.make_optimizer()

@@ -1,0 +1,119 @@
+#!/usr/bin/env python
+"""The demo fit's time and quality against a reference commit, both measured in this run on this machine.
+
+The demo subject (seed 0, ``walk_in_place``) is fitted with ``cpu-fast`` by the reference commit's code
+(exported with ``git archive`` into the work folder) and by this checkout's, one after the other with the
+same threads, and each avatar is evaluated (novel view, novel pose). Writes
+``docs/benchmarks/fit_speed.{json,md}``: fit seconds, their ratio, and the quality differences, with the
+target (at most half the time; novel-view PSNR / SSIM / novel-pose PSNR within 0.1 dB / 0.002 / 0.2 dB).
+Finished fits are reused, so an interrupted run resumes.
+
+    python scripts/bench_fit_speed.py                  # against REFERENCE
+    python scripts/bench_fit_speed.py --reference HEAD~3
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+from elicit_diffrender.benchtools import fit_and_eval, markdown_table, run, worker_env, write_report
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = "cef11e6"  # main on 2026-12-03, before the baked warp and the fused optimiser
+TOLERANCE = {"psnr": 0.1, "ssim": 0.002, "novel_pose_psnr": 0.2}
+
+
+def export_commit(commit: str, dest: Path) -> str:
+    """The commit's tree in ``dest`` (with the package's ``kernels`` and ``scenes`` linked in); its full hash."""
+    full = subprocess.run(["git", "rev-parse", commit], cwd=ROOT, capture_output=True, text=True, check=True)
+    sha = full.stdout.strip()
+    stamp = dest / ".commit"
+    if not (stamp.is_file() and stamp.read_text() == sha):
+        archive = subprocess.run(["git", "archive", sha], cwd=ROOT, capture_output=True, check=True).stdout
+        dest.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            tar.extractall(dest, filter="data")
+        for name in ("kernels", "scenes"):
+            link = dest / "elicit_diffrender" / name
+            if not link.exists():
+                link.symlink_to(Path("..") / name)
+        stamp.write_text(sha)
+    return sha
+
+
+def quality(metrics: dict, run_dir: Path) -> dict:
+    finished = time.strftime("%Y-%m-%d %H:%M", time.localtime((run_dir / "metrics.json").stat().st_mtime))
+    return {
+        "psnr": metrics["novel_view"]["psnr"],
+        "ssim": metrics["novel_view"]["ssim"],
+        "novel_pose_psnr": metrics["novel_pose"]["psnr"],
+        "fit_seconds": metrics["fit_seconds"],
+        "finished": finished,
+    }
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--reference", default=REFERENCE, help=f"commit to compare against (default {REFERENCE})")
+    p.add_argument("--work", type=Path, default=ROOT / "runs" / "bench_fit_speed")
+    p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
+    args = p.parse_args()
+    from elicit_diffrender.demo import DEMO_MOTION, DEMO_SEED
+
+    elicit = str(Path(sys.executable).with_name("elicit"))
+    env = worker_env(1)  # each fit alone, with every CPU this process is given
+    subject = args.work / "subject"
+    if not (subject / "subject.json").is_file():
+        cmd = [elicit, "synth", "--seed", str(DEMO_SEED), "--motion", DEMO_MOTION, "--out", str(subject)]
+        run(cmd, env, args.work / "synth.log")
+    sha = export_commit(args.reference, args.work / "reference_code")
+    start = time.perf_counter()
+    results = {}
+    for name, code in (("reference", args.work / "reference_code"), ("this checkout", ROOT)):
+        side_env = {**env, "PYTHONPATH": str(code)}
+        run_dir = args.work / name.replace(" ", "_")
+        results[name] = quality(fit_and_eval(elicit, subject, run_dir, [], side_env), run_dir)
+    ref, new = results["reference"], results["this checkout"]
+    ratio = new["fit_seconds"] / ref["fit_seconds"]
+    delta = {k: new[k] - ref[k] for k in TOLERANCE}
+    target = {
+        "at_most_half_the_time": ratio <= 0.5,
+        "quality_kept": all(delta[k] >= -tol for k, tol in TOLERANCE.items()),
+    }
+    data = {
+        "reference_commit": sha,
+        "subject": {"seed": DEMO_SEED, "motion": DEMO_MOTION},
+        "preset": "cpu-fast",
+        "results": results,
+        "time_ratio": ratio,
+        "delta": delta,
+        "tolerance": TOLERANCE,
+        "target": target,
+        "seconds": time.perf_counter() - start,
+    }
+    rows = [{"code": name, **r} for name, r in results.items()]
+    columns = [("code", "code"), ("finished", "finished"), ("fit_seconds", "fit, s"), ("psnr", "novel-view PSNR")]
+    md = (
+        f"# The demo fit against commit `{sha[:10]}`\n\n"
+        f"`scripts/bench_fit_speed.py`: the demo subject (seed {DEMO_SEED}, {DEMO_MOTION}) fitted with `cpu-fast` "
+        f"by both versions of the code, one after the other on the same machine with nothing else running, then "
+        f"evaluated (a finished fit is reused: `finished` says when each ran).\n\n"
+        f"{markdown_table(rows, [*columns, ('ssim', 'SSIM'), ('novel_pose_psnr', 'novel-pose PSNR')])}\n"
+        f"Time ratio {ratio:.3f}; quality differences (this checkout minus reference): novel-view PSNR "
+        f"{delta['psnr']:+.3f} dB, SSIM {delta['ssim']:+.4f}, novel-pose PSNR {delta['novel_pose_psnr']:+.3f} dB.\n\n"
+        f"Targets: {', '.join(f'{k}: {v}' for k, v in target.items())}.\n"
+    )
+    json_path, md_path = write_report(args.out, "fit_speed", data, md)
+    print(md)
+    print(f"wrote {json_path} and {md_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
