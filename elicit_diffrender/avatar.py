@@ -258,29 +258,26 @@ class Avatar(nn.Module):
         """
         shape = grid_shape(box.cpu(), cell)
         nodes = grid_points(box.double().cpu(), shape).reshape(-1, 3).to(torch.float32).to(self.device)
-        obs_to_canonical, weights = self.obs_to_canonical(bones), self.motion_weights().detach()
         out = []
         for s in range(0, nodes.shape[0], chunk):
-            x_c, fg = inverse_lbs(
-                nodes[s : s + chunk], obs_to_canonical, weights, self.motion_weights.box, sharpness=self.sharpness,
-                gate=self.gate,
-            )  # fmt: skip
+            x_c, fg = self._exact_warp(nodes[s : s + chunk], bones)
             out.append(torch.cat([x_c * fg[:, None], fg[:, None]], 1))
         return torch.cat(out).reshape(*shape, 4)
+
+    def _exact_warp(self, points: torch.Tensor, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The per-bone inverse warp: canonical points and the summed bone weights (before :meth:`foreground`)."""
+        weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
+        return inverse_lbs(
+            points, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness,
+            gate=self.gate,
+        )  # fmt: skip
 
     def warp_points(
         self, points: torch.Tensor, bones: torch.Tensor, baked: tuple[torch.Tensor, torch.Tensor] | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Observation-space points (N, 3) -> canonical points (N, 3) and foreground likelihood (N,): the exact
         inverse warp, or trilinear look-ups in ``baked`` = (table, box) from :meth:`bake_warp`."""
-        if baked is not None:
-            x_c, fg = lookup_baked_warp(points, *baked)
-            return x_c, self.foreground(fg)
-        weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
-        x_c, fg = inverse_lbs(
-            points, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness,
-            gate=self.gate,
-        )  # fmt: skip
+        x_c, fg = lookup_baked_warp(points, *baked) if baked is not None else self._exact_warp(points, bones)
         return x_c, self.foreground(fg)
 
     def render_rays(
