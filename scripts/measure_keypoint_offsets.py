@@ -62,10 +62,10 @@ def observations(root: Path) -> dict[int, list]:
             found = detect_pose(write_image(Path(tmp) / "p.png", np.where(mask[..., None], rgb, 0.5))).landmarks
         if found is None:
             continue
+        frames = posed.bone_transforms
         for k, (bone, _) in KEYPOINT_OFFSETS.items():
             if found[k, 2] < 0.8:
                 continue
-            frames = posed.bone_transforms
             joint = cam.R @ frames[body.joint_index(KEYPOINTS[k][1]), :3, 3] + cam.T
             out[k].append((cam.K, joint, cam.R @ frames[body.joint_index(bone), :3, :3], found[k, :2]))
     return out
@@ -112,7 +112,7 @@ def main() -> int:
             f"landmarks {left}/{right} ({KEYPOINT_OFFSETS[left][0]}): left offset {np.round(mean, 3).tolist()} m "
             f"(in use {list(KEYPOINT_OFFSETS[left][1])}); per side {np.round(o_l, 3).tolist()} / "
             f"{np.round(o_r, 3).tolist()}; mean error {(b_l + b_r) / 2:.1f} -> {(a_l + a_r) / 2:.1f} px "
-            f"over {len(obs[left]) + len(obs[right])} views"
+            f"over {len(obs[left]) + len(obs[right])} detections"
         )
     return 0
 

@@ -55,11 +55,16 @@ def test_missing_mediapipe_gives_install_hint(tmp_path, monkeypatch):
         prepare(tmp_path / "p.png", tmp_path / "out")
 
 
-def line_yaw_deg(subject, camera, joints: tuple[str, str]) -> float:
-    """Turn about the camera's vertical of the line from joint 2 to joint 1 at the input frame, in degrees."""
+def joints_in_camera(subject, camera, joints) -> list[np.ndarray]:
+    """Camera-space positions (3,) of the named joints at the input frame."""
     body = subject.body
     posed = body.pose(*subject.motion.frame(subject.input_index))
-    a, b = (camera.R @ posed.bone_transforms[body.joint_index(j), :3, 3] + camera.T for j in joints)
+    return [camera.R @ posed.bone_transforms[body.joint_index(j), :3, 3] + camera.T for j in joints]
+
+
+def line_yaw_deg(subject, camera, joints: tuple[str, str]) -> float:
+    """Turn about the camera's vertical of the line from joint 2 to joint 1 at the input frame, in degrees."""
+    a, b = joints_in_camera(subject, camera, joints)
     d = a - b
     return float(np.degrees(np.arctan2(d[2], d[0])))
 
@@ -69,27 +74,27 @@ def test_keypoint_offsets_move_landmarks_along_their_bones():
     fit = AnnyFit()
     with torch.no_grad():
         _, heads, rots = fit()
-    for side in "LR":
+    for side, ankle_k, hip_k in (("L", 27, 23), ("R", 28, 24)):
         knee, foot, hip = (heads[fit.names.index(f"{j}.{side}")] for j in ("lowerleg01", "foot", "upperleg01"))
-        for k, (lo, hi) in {27 if side == "L" else 28: (knee, foot), 23 if side == "L" else 24: (hip, knee)}.items():
+        # landmark -> (its joint, the segment it lies on from upper to lower end, the allowed share along it)
+        for k, (joint, lo, hi, (least, most)) in {
+            ankle_k: (foot, knee, foot, (0.85, 0.98)),
+            hip_k: (hip, hip, knee, (0.02, 0.15)),
+        }.items():
             bone, offset = KEYPOINT_OFFSETS[k]
-            joint = foot if k in (27, 28) else hip
             point = joint + rots[fit.names.index(bone)] @ torch.tensor(offset, dtype=torch.float64)
             axis = (hi - lo) / (hi - lo).norm()
             along = float((point - lo) @ axis / (hi - lo).norm())  # 0 at the upper joint, 1 at the lower
             across = float(((point - lo) - ((point - lo) @ axis) * axis).norm())
-            assert (0.85 < along < 0.98) if k in (27, 28) else (0.02 < along < 0.15), (k, along)
+            assert least < along < most, (k, along)
             assert across < 0.035, (k, across)
 
 
 def shin_pitch_deg(subject, camera) -> float:
     """How far the shins lean out of the image plane, ankles away from the camera positive (mean of both)."""
-    body = subject.body
-    posed = body.pose(*subject.motion.frame(subject.input_index))
     out = []
     for side in "LR":
-        knee, ankle = (camera.R @ posed.bone_transforms[body.joint_index(f"{j}.{side}"), :3, 3] + camera.T
-                       for j in ("lowerleg01", "foot"))  # fmt: skip
+        knee, ankle = joints_in_camera(subject, camera, (f"lowerleg01.{side}", f"foot.{side}"))
         d = ankle - knee
         out.append(np.degrees(np.arctan2(d[2], d[1])))
     return float(np.mean(out))

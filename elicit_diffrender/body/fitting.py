@@ -95,10 +95,10 @@ WORLD_LINES = {
 }  # fmt: skip
 TORSO_LINES = ("shoulders", "hips", "trunk")  # the lines the coarse (placement-only) stage matches
 # Bending the wrong way costs: the knee's flexion axis is +x (world), the elbow's -x in the rest frame.
+HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lowerarm01.R": -1.0}
 # Extra cost on knee rotation (rad^2, inside ``prior``): a few pixels of knee or foot landmark error would
 # otherwise bend the knees 10-20 degrees out of the image plane (measured on the synthetic subjects).
 KNEE_WEIGHT = 100.0
-HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lowerarm01.R": -1.0}
 
 
 def procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
