@@ -35,6 +35,7 @@ from .subject import Subject
 
 BOX_PADDING = 0.05
 REAR_DEGREES = 120.0
+GRID_ROWS = 8  # views in each split's grid, evenly spaced through the split
 
 
 def angle_around_body(camera: Camera, reference: Camera, centre: np.ndarray, up: np.ndarray) -> float:
@@ -194,7 +195,8 @@ def evaluate(
                 "ssim": float(np.mean([r["ssim"] for r in rear])) if rear else None,
             }
         if tiles:
-            grid = np.concatenate(tiles[:8], 0)
+            shown = np.unique(np.linspace(0, len(tiles) - 1, GRID_ROWS).round().astype(int))  # all round, back included
+            grid = np.concatenate([tiles[i] for i in shown], 0)
             write_image(out_dir / f"{split}_grid.png", grid)
     return result
 

@@ -59,6 +59,10 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     head_src = cKDTree(verts).query(src[parts[nearest] == head])
     assert (head_src[0] < 1e-6).all() and (parts[head_src[1]] == head).all() and seen[head_src[1]].all()
     assert (normals[head_src[1], 1] > 0.5).all()
+    # The crown is the top of the head: the up-facing brows, nose and lips below it (seen here) are the face.
+    top = verts[parts == head, 1].max()
+    face_up = seen & (parts == head) & (normals[:, 1] > 0.5) & (verts[:, 1] < top - 0.09)
+    assert face_up.sum() > 20 and (verts[head_src[1], 1] > top - 0.07).all()
 
     # Front red, back blue (per part): the term pulls the back towards red and never touches the front.
     all_cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()

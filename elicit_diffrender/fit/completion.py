@@ -6,10 +6,11 @@ leg that of the right. Every colour cell of the canonical grid near the body who
 vertex the input camera does not see gets a *source* point that it does see, by the first rule
 that finds one: its mirror image through its body part's frontal plane (front <-> back; not for
 the head, whose back is hair, not a face), through the body's sagittal plane (left <-> right),
-through both; the head's back instead copies the nearest seen vertex of its crown (hair, a hat or
-bare skin, like the top of the head, not the face); else the nearest seen vertex of the cell's own
-part, else the nearest seen vertex. The photo's light (``fit.shading``, fitted to the seen
-body) says how much darker or brighter the cell's side is than its source's, so the target is
+through both; the head's back instead copies the nearest seen vertex of its crown (the up-facing
+top ``CROWN_DEPTH`` of the head: hair, a hat or bare skin, not the face); else the nearest seen
+vertex of the cell's own part, else the nearest seen vertex. The photo's light (``fit.shading``,
+fitted to the seen body) says how much darker or brighter the cell's side is than its source's, so
+the target is
 
     t_c = sigmoid(blur(c)(source_c)) * S(n_c) / S(n_source)
 
@@ -42,7 +43,8 @@ DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface i
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
 BLUR_VOXELS = 1.5  # spacing of the blur stencil at the source
 NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they copy their crown
-CROWN_UP = 0.5  # a vertex whose canonical normal's up component exceeds this is on the crown
+CROWN_UP = 0.5  # a vertex whose canonical normal's up component exceeds this ...
+CROWN_DEPTH = 0.06  # ... and that lies at most this far (metres) below its part's top is on the crown
 REFRESH = 10  # steps between recomputations of the targets
 
 
@@ -122,7 +124,10 @@ class MirrorCompletion:
             counts[name] = int(ok.sum())
         # Then the nearest seen vertex of a pool: for the head its crown (the back of a head is hair, a hat or
         # bare skin like its top, not the face), then the cell's own part, then any part.
-        crown = seen & (normals[:, 1] > CROWN_UP)
+        # Below CROWN_DEPTH the up-facing vertices are brows, eyelids, the nose's ridge and the lips: the face.
+        top = np.full(len(PART_NAMES), -np.inf)
+        np.maximum.at(top, vertex_parts, canonical[:, 1])
+        crown = seen & (normals[:, 1] > CROWN_UP) & (canonical[:, 1] > top[vertex_parts] - CROWN_DEPTH)
         no_mirror = [PART_NAMES.index(n) for n in NO_FRONT_BACK]
         for name, pool_of in (
             ("crown", lambda k: crown & (vertex_parts == k) if k in no_mirror else None),
