@@ -22,6 +22,7 @@ import numpy as np
 
 from elicit_diffrender.body.fitting import KEYPOINT_OFFSETS, KEYPOINTS
 from elicit_diffrender.checks import read_image, read_mask
+from elicit_diffrender.evaluate import angle_around_body
 from elicit_diffrender.io import write_image
 from elicit_diffrender.mediapipe_bridge import detect_pose
 from elicit_diffrender.subject import load_subject
@@ -34,16 +35,10 @@ RIDGE = 1e3  # px^2 per m^2
 def views(subject) -> list[tuple[str, int]]:
     """(camera, frame) pairs: every 6th frame of cam00, and frame 0 of the cameras near it."""
     centre = subject.body.pose(*subject.motion.frame(0)).vertices.mean(0)
-
-    def heading(cam) -> np.ndarray:
-        d = -cam.R.T @ cam.T - centre
-        d[1] = 0.0
-        return d / np.linalg.norm(d)
-
-    front = heading(subject.cameras["cam00"])
+    front, up = subject.cameras["cam00"], np.array([0.0, 1.0, 0.0])
     out = [("cam00", f) for f in range(0, len(subject.motion), 6)]
     for name, cam in subject.cameras.items():
-        angle = np.degrees(np.arccos(np.clip(heading(cam) @ front, -1, 1)))
+        angle = angle_around_body(cam, front, centre, up)
         if name != "cam00" and angle < MAX_ANGLE and subject.image_path(name, 0).is_file():
             out.append((name, 0))
     return out
