@@ -60,6 +60,7 @@ class FitConfig:
     room_weight: float = 1.0
     learn_motion_weights: bool = False
     refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
+    garment_hull: bool = True  # a garment that bridges the legs in the photo gets depth (fit/room.py)
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
     # While the motion weights and a training pose are fixed, that pose's inverse warp is baked into a look-up
     # table with nodes this far apart (metres) and read trilinearly (0 = the exact per-bone warp for every sample)

@@ -47,23 +47,29 @@ def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray,
 
 @dataclass
 class Room:
-    """How far outside the canonical body the avatar may hold density (metres): ``margin`` everywhere, and
-    ``reach`` at the points ``extends`` selects (where the photo shows more than the body: hair, loose
-    clothing)."""
+    """How far outside the canonical body the avatar may hold density (metres): ``margin`` everywhere, ``reach``
+    at the points ``extends`` selects (where the photo shows more than the body: hair, loose clothing), and
+    ``hull_reach`` at the points ``hull`` selects (a garment's depth, :mod:`elicit_diffrender.fit.room`)."""
 
     margin: float
     reach: float = 0.0
     extends: Callable[[np.ndarray], np.ndarray] | None = None
+    hull_reach: float = 0.0
+    hull: Callable[[np.ndarray], np.ndarray] | None = None
 
     @property
     def widest(self) -> float:
-        return max(self.margin, self.reach) if self.extends is not None else self.margin
+        out = max(self.margin, self.reach) if self.extends is not None else self.margin
+        return max(out, self.hull_reach) if self.hull is not None else out
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(P,) the room at each canonical point."""
         out = np.full(len(points), self.margin)
         if self.extends is not None and self.reach > self.margin:
             out[self.extends(points)] = self.reach
+        if self.hull is not None:
+            inside = self.hull(points)
+            out[inside] = np.maximum(out[inside], self.hull_reach)
         return out
 
 
@@ -110,6 +116,13 @@ class CanonicalField(nn.Module):
             cells = grid_points(self.box.double(), tuple(self.occupancy.shape)).reshape(-1, 3).numpy()
             allowed = signed_distance(cells, vertices, normals) < room(cells) + self.occupancy_cell
             self.occupancy.copy_(torch.as_tensor(allowed.reshape(self.occupancy.shape), dtype=torch.uint8))
+
+    @torch.no_grad()
+    def fill(self, inside: np.ndarray, value: float = 3.0) -> None:
+        """Make the cells where the flat bool mask ``inside`` is set at least ``value`` dense (raw)."""
+        flat = self.density.view(-1)
+        cells = torch.as_tensor(np.flatnonzero(inside), device=flat.device)
+        flat[cells] = flat[cells].clamp(min=value)
 
     @torch.no_grad()
     def set_colors_by_part(self, vertices: np.ndarray, vertex_parts: np.ndarray, part_colors: np.ndarray) -> None:

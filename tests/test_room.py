@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from elicit_diffrender.avatar import Avatar, sample_grid
-from elicit_diffrender.fit.room import input_room
+from elicit_diffrender.body import PART_NAMES
+from elicit_diffrender.fit.room import LEGS, MAX_REACH, InputFrame, input_room
 from elicit_diffrender.io import write_image
 from elicit_diffrender.subject import load_subject
 from elicit_diffrender.synth import synthesize
@@ -38,7 +39,49 @@ def subjects(tmp_path_factory):
 def test_a_mask_like_the_body_keeps_the_margin(subjects):
     plain, _ = subjects
     room = input_room(plain, MARGIN)
-    assert room.extends is None and room.widest == MARGIN
+    assert room.extends is None and room.hull is None and room.widest == MARGIN
+
+
+def test_a_skirt_gets_depth_in_front_of_and_behind_the_legs(tmp_path):
+    """Seed 1 wears a flared skirt: the mask bridges the gap between its legs down to the hem, so the room
+    grows over a hull as deep as the skirt is wide, between the hips and the hem only."""
+    skirt = load_subject(synthesize(1, tmp_path / "skirt", size=192, spp=4, n_cameras=4, texture_size=256))
+    room = input_room(skirt, MARGIN)
+    assert room.hull is not None and 0.12 < room.hull_reach <= MAX_REACH
+    body = skirt.body
+    canon, parts = body.pose(body.canonical_pose()).vertices, body.vertex_parts()
+    thighs = canon[np.isin(parts, [PART_NAMES.index(n) for n in ("left_thigh", "right_thigh")])]
+    mid = thighs.mean(0)  # between the thighs, half way down them
+    chest = canon[parts == PART_NAMES.index("torso")].mean(0)
+    shins = canon[np.isin(parts, [PART_NAMES.index(n) for n in ("left_shin", "right_shin")])].mean(0)
+    ahead = np.array([0.0, 0.0, 0.12])
+    points = np.stack([mid + ahead, mid - ahead, chest + 2 * ahead, shins + ahead])
+    assert room.hull(points).tolist() == [True, True, False, False]
+    assert room(points[:2]).min() >= room.hull_reach
+    assert input_room(skirt, MARGIN, garment=False).hull is None
+
+
+def test_touching_thighs_are_not_a_skirt(subjects, tmp_path):
+    """Trousers whose thighs touch below the crotch bridge a narrow gap between the body's legs: no garment.
+    The same mask bridging the legs down to where they stand 10 cm apart does make one."""
+    plain, _ = subjects
+    frame = InputFrame.load(plain)
+    legs = [np.isin(frame.labels, [PART_NAMES.index(n) for n in side]) for side in LEGS]
+    metres_per_pixel = float(np.median(frame.camera.project(frame.posed)[1])) / frame.camera.K[0, 0]
+    found = {}
+    for limit in (0.04, 0.10):
+        copy = tmp_path / f"bridged_{limit}"
+        shutil.copytree(plain.root, copy)
+        subject = load_subject(copy)
+        mask = subject.mask(subject.input_camera, subject.input_frame).copy()
+        assert mask.shape == frame.person.shape  # the test subject's mask is at the work size
+        for v in np.nonzero(legs[0].any(1) & legs[1].any(1))[0]:
+            (_, a1), (b0, _) = sorted((c.min(), c.max()) for c in (np.nonzero(leg[v])[0] for leg in legs))
+            if 3 <= b0 - a1 and (b0 - a1 - 1) * metres_per_pixel <= limit:
+                mask[v, a1 : b0 + 1] = True
+        write_image(subject.mask_path(subject.input_camera, subject.input_frame), mask.astype(np.float32))
+        found[limit] = input_room(subject, MARGIN).hull is not None
+    assert found == {0.04: False, 0.10: True}
 
 
 def test_hair_above_the_head_grows_the_room_there_only(subjects):

@@ -86,14 +86,16 @@ class MirrorCompletion:
         seen: np.ndarray,
         margin: float,
         light: np.ndarray | None = None,
+        garment: np.ndarray | None = None,
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
         ``vertex_parts``) and which of its vertices the input camera sees; cells up to ``margin`` outside
-        the body count. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without it
-        the gains are 1."""
+        the body count, and the ``garment`` cells (flat bool: a garment's hull) however far out. ``light``
+        (V,) is the photo's light ``S`` at every vertex (input pose); without it the gains are 1."""
         pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
         sdf = signed_distance(pts, canonical, normals)
-        near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & (sdf < margin))[0]
+        room = sdf < margin if garment is None else (sdf < margin) | garment
+        near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & room)[0]
         tree = cKDTree(canonical)
         _, idx = tree.query(pts[near])
         hidden = ~seen[idx]

@@ -48,16 +48,31 @@ Terms = dict[str, torch.Tensor]
 log = logging.getLogger("elicit.fit")
 
 
-def outside_body(body: BodyModel, field: CanonicalField, device: torch.device) -> torch.Tensor:
-    """1 for grid cells more than one cell outside the canonical body (where density is clothing)."""
+def outside_body(
+    body: BodyModel, field: CanonicalField, device: torch.device, garment: np.ndarray | None
+) -> torch.Tensor:
+    """1 for grid cells more than one cell outside the canonical body (where density is clothing), except the
+    ``garment`` cells (flat bool: the hull of a garment that bridges the legs, whose depth is a prior's)."""
     canon = body.pose(body.canonical_pose())
     pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
     sdf = signed_distance(pts, canon.vertices, vertex_normals(canon.vertices, body.faces))
-    return torch.as_tensor((sdf > field.voxel_size).reshape(field.shape), dtype=torch.float32, device=device)
+    outside = sdf > field.voxel_size
+    if garment is not None:
+        outside &= ~garment
+    return torch.as_tensor(outside.reshape(field.shape), dtype=torch.float32, device=device)
 
 
 class Objective:
-    def __init__(self, cfg: FitConfig, views: FitViews, renderer: PoseRenderer, streams: RandomStreams, body) -> None:
+    def __init__(
+        self,
+        cfg: FitConfig,
+        views: FitViews,
+        renderer: PoseRenderer,
+        streams: RandomStreams,
+        body: BodyModel,
+        garment: np.ndarray | None = None,
+    ) -> None:
+        """``garment``: flat bool over the grid's cells, the hull of a garment that bridges the legs (:mod:`.room`)."""
         self.cfg, self.views, self.renderer, self.streams = cfg, views, renderer, streams
         self.device = renderer.avatar.device
         self.field = renderer.avatar.field
@@ -71,21 +86,21 @@ class Objective:
             if cfg.text_prompt and self.on("text"):
                 raise EncoderError(f"text_prompt needs CLIP weights; the semantic prior here is {FALLBACK_NAME}")
             if self.on("semantic") and self.on("mirror"):
-                self.completion = self._mirror_completion(body, cfg.box_margin)
+                self.completion = self._mirror_completion(body, cfg.box_margin, garment)
         self.text_embedding = None
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
         self.perceptual = Perceptual(cfg.perceptual, self.device)
-        self.outside_body = outside_body(body, self.field, self.device) if self.on("sparsity") else None
+        self.outside_body = outside_body(body, self.field, self.device, garment) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
 
-    def _mirror_completion(self, body: BodyModel, margin: float) -> MirrorCompletion:
+    def _mirror_completion(self, body: BodyModel, margin: float, garment: np.ndarray | None) -> MirrorCompletion:
         view = self.views.input
         canon = body.pose(body.canonical_pose())
         normals = vertex_normals(canon.vertices, body.faces)
         light = view.shading(view.normals)
         pairs = MirrorCompletion.build(
-            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin, light
+            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin, light, garment
         )
         rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
         log.info(

@@ -1,18 +1,31 @@
-"""Room for what the photo shows beyond the body: hair, loose clothing, a large head.
+"""Room for what the photo shows beyond the body: hair, loose clothing, a large head, a skirt's depth.
 
 The avatar may hold density within ``box_margin`` of the canonical body. Where the input mask
 reaches further from the body's own silhouette than that, the room grows to that reach (plus
 ``SLACK``), but only at the canonical points whose place in the input pose projects inside the mask:
 one photo says how far hair stands out sideways and up, not how far back, so the room in depth is
 the same reach, and the novel-view terms and the sparsity prior decide what fills it.
+
+A garment that bridges the legs (a skirt, a dress) is the exception where one photo does say more:
+at an image row where the mask covers the whole gap between the body's two legs, the mask's run
+over the legs is the garment's width there, and the garment is taken to be as deep as it is wide:
+a circular cross-section about the legs' centre at that row (``garment_hull``). Its cells get the
+room they need, and stage 2 starts with them opaque (:meth:`CanonicalField.fill`), so that side
+views show the skirt's depth instead of a skirt that hugs the thighs.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 
-from ..field import Room, splat_weights
+from ..body import PART_NAMES
+from ..body.template import vertex_normals
+from ..cameras import Camera
+from ..field import Room, signed_distance, splat_weights
 from ..mesh_render import MeshRenderer
 from ..subject import Subject
 
@@ -20,39 +33,148 @@ SLACK = 0.03  # metres added to the measured reach
 MAX_REACH = 0.5  # metres: a mask further than this from the body is not the person's
 MIN_SHARE = 0.002  # mask pixels beyond the margin, as a share of the mask, that count as more than the body
 WORK_SIZE = 512  # the mask is compared at most at this size (pixels, longer side)
+LEGS = (("left_thigh", "left_shin"), ("right_thigh", "right_shin"))
+MIN_GAP = 0.07  # metres: a garment bridges a gap this wide between the legs somewhere (touching thighs do not)
+MAX_HOLE = 6  # rows: the garment's band runs on through this many rows that do not bridge
+WIDTH_SMOOTHING = 9  # rows: the garment's width is the running median over this many rows (a hand beside it)
+HULL_LATTICE = 0.02  # metres between the points that measure how far the hull stands off the body
 
 
-def input_room(subject: Subject, margin: float) -> Room:
-    """The room of ``subject``'s avatar: ``margin``, grown where its input mask reaches further from the body."""
-    body = subject.body
-    posed = body.pose(*subject.motion.frame(subject.input_index))
-    cam = subject.cameras[subject.input_camera]
-    scale = min(1.0, WORK_SIZE / max(cam.width, cam.height))
-    cam = cam.scaled(scale)
-    person = subject.mask(subject.input_camera, subject.input_frame).astype(np.float32)
-    person = ndimage.zoom(person, (cam.height / person.shape[0], cam.width / person.shape[1]), order=1) > 0.5
-    silhouette = MeshRenderer(body.faces).render(posed.vertices, [cam], ("mask",))["mask"][0] > 0.5
-    _, depth = cam.project(posed.vertices)
-    metres_per_pixel = float(np.median(depth)) / float(cam.K[0, 0])
-    beyond = ndimage.distance_transform_edt(~silhouette) * metres_per_pixel
-    outside = person & (beyond > margin) & (beyond < MAX_REACH)
-    if outside.sum() < MIN_SHARE * max(person.sum(), 1):
-        return Room(margin)
-    reach = float(np.percentile(beyond[outside], 99)) + SLACK
-    inside = ndimage.binary_dilation(person, iterations=2)
-    canon = body.pose(body.canonical_pose())
-    can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
-    weights = body.reduced_weights()
+@dataclass
+class InputFrame:
+    """The input view at the work size: camera, person mask, the body's part labels and vertices in the input
+    pose, and the map of canonical points to their place in the input pose (the body's own skinning)."""
 
-    def extends(points: np.ndarray) -> np.ndarray:
-        """Canonical points whose place in the input pose projects inside the (dilated) input mask."""
-        w = splat_weights(points, canon.vertices, weights)
-        posed_pts = np.einsum("pb,bij,pj->pi", w, can_to_obs[:, :3, :3], points) + w @ can_to_obs[:, :3, 3]
-        uv, z = cam.project(posed_pts)
+    camera: Camera
+    person: np.ndarray  # (H, W) bool
+    labels: np.ndarray  # (H, W) int body part, -1 background
+    posed: np.ndarray  # (V, 3) the body's vertices in the input pose
+    canonical: np.ndarray  # (V, 3) in the canonical pose
+    normals: np.ndarray  # (V, 3) canonical vertex normals
+    vertex_parts: np.ndarray  # (V,)
+    to_input_pose: Callable[[np.ndarray], np.ndarray]
+
+    @classmethod
+    def load(cls, subject: Subject) -> InputFrame:
+        body = subject.body
+        posed = body.pose(*subject.motion.frame(subject.input_index))
+        cam = subject.cameras[subject.input_camera]
+        cam = cam.scaled(min(1.0, WORK_SIZE / max(cam.width, cam.height)))
+        person = subject.mask(subject.input_camera, subject.input_frame).astype(np.float32)
+        person = ndimage.zoom(person, (cam.height / person.shape[0], cam.width / person.shape[1]), order=1) > 0.5
+        labels = MeshRenderer(body.faces, face_labels=body.face_parts()).render(posed.vertices, [cam], ("labels",))
+        canon = body.pose(body.canonical_pose())
+        can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
+        weights = body.reduced_weights()
+
+        def to_input_pose(points: np.ndarray) -> np.ndarray:
+            w = splat_weights(points, canon.vertices, weights)
+            return np.einsum("pb,bij,pj->pi", w, can_to_obs[:, :3, :3], points) + w @ can_to_obs[:, :3, 3]
+
+        normals = vertex_normals(canon.vertices, body.faces)
+        return cls(
+            cam, person, labels["labels"][0], posed.vertices, canon.vertices, normals, body.vertex_parts(),
+            to_input_pose,
+        )  # fmt: skip
+
+    def in_mask(self, points: np.ndarray, dilate: int = 0) -> np.ndarray:
+        """(P,) bool: input-pose ``points`` that project inside the (dilated) person mask."""
+        inside = ndimage.binary_dilation(self.person, iterations=dilate) if dilate else self.person
+        uv, z = self.camera.project(points)
         px = np.floor(uv).astype(int)
-        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+        h, w = inside.shape
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         hit = np.zeros(len(points), dtype=bool)
         hit[ok] = inside[px[ok, 1], px[ok, 0]]
         return hit
 
-    return Room(margin, reach, extends)
+
+def input_room(subject: Subject, margin: float, garment: bool = True) -> Room:
+    """The room of ``subject``'s avatar: ``margin``, grown where its input mask reaches further from the body,
+    and over the hull of a garment that bridges the legs (with ``garment``)."""
+    frame = InputFrame.load(subject)
+    room = Room(margin)
+    silhouette = frame.labels >= 0
+    _, depth = frame.camera.project(frame.posed)
+    metres_per_pixel = float(np.median(depth)) / float(frame.camera.K[0, 0])
+    beyond = ndimage.distance_transform_edt(~silhouette) * metres_per_pixel
+    outside = frame.person & (beyond > margin) & (beyond < MAX_REACH)
+    if outside.sum() >= MIN_SHARE * max(frame.person.sum(), 1):
+        room.reach = float(np.percentile(beyond[outside], 99)) + SLACK
+        room.extends = lambda points: frame.in_mask(frame.to_input_pose(points), dilate=2)
+    hull = garment_hull(frame) if garment else None
+    if hull is not None:
+        legs = frame.canonical[np.isin(frame.vertex_parts, [PART_NAMES.index(n) for side in LEGS for n in side])]
+        lo, hi = legs.min(0) - MAX_REACH, legs.max(0) + MAX_REACH
+        axes = [np.arange(lo[a], hi[a], HULL_LATTICE) for a in range(3)]
+        lattice = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        lattice = lattice[signed_distance(lattice, frame.canonical, frame.normals) < MAX_REACH]
+        inside = lattice[hull(lattice)]
+        if len(inside):
+            off = signed_distance(inside, frame.canonical, frame.normals)
+            room.hull, room.hull_reach = hull, float(min(off.max() + SLACK, MAX_REACH))
+    return room
+
+
+def garment_hull(frame: InputFrame) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The hull of a garment that bridges the legs in the input view, as a test of canonical points (None when
+    no garment does): circular cross-sections, one per image row of the garment's band, as wide as the mask's
+    run over the legs there, centred on the legs' middle (left/right in the image, front/back from the legs'
+    vertices). Thighs that touch bridge a narrow gap too, so only a band that bridges a gap of at least
+    ``MIN_GAP`` counts; it runs from there up and down through bridged rows (holes up to ``MAX_HOLE`` rows)."""
+    cam, person, labels = frame.camera, frame.person, frame.labels
+    leg_ids = [PART_NAMES.index(n) for side in LEGS for n in side]
+    legs = [np.isin(labels, [PART_NAMES.index(n) for n in side]) for side in LEGS]
+    passable = (labels < 0) | np.isin(labels, leg_ids)  # the run stops at arms and hands
+    uv, z = cam.project(frame.posed)
+    on_legs = np.isin(frame.vertex_parts, leg_ids)
+    fx, cx = float(cam.K[0, 0]), float(cam.K[0, 2])
+    left, right, depth, gap = (np.full(cam.height, np.nan) for _ in range(4))
+    for v in np.nonzero(legs[0].any(1) & legs[1].any(1))[0]:
+        spans = sorted((c.min(), c.max()) for c in (np.nonzero(legs[0][v])[0], np.nonzero(legs[1][v])[0]))
+        (a0, a1), (b0, b1) = spans
+        between = slice(a1 + 1, b0)
+        near = on_legs & (np.abs(uv[:, 1] - (v + 0.5)) <= 2.0)
+        if b0 - a1 < 3 or not person[v, between].all() or (labels[v, between] >= 0).all() or not near.any():
+            continue  # legs touching, apart in the photo, joined by the body itself (the crotch), or no vertices
+        x0, x1 = a0, b1
+        while x0 > 0 and person[v, x0 - 1] and passable[v, x0 - 1]:
+            x0 -= 1
+        while x1 < cam.width - 1 and person[v, x1 + 1] and passable[v, x1 + 1]:
+            x1 += 1
+        # The legs' middle in depth: halfway between their nearest and furthest vertices at this row.
+        depth[v] = 0.5 * (z[near].min() + z[near].max())
+        left[v], right[v], gap[v] = x0, x1 + 1, (b0 - a1 - 1) * depth[v] / fx
+    bridged = ~np.isnan(left)
+    if not (gap[bridged] >= MIN_GAP).any():
+        return None
+    seed = int(np.nanargmax(gap))
+    band = np.zeros(cam.height, dtype=bool)
+    for direction in (-1, 1):
+        v, hole = seed, 0
+        while 0 <= v < cam.height and hole <= MAX_HOLE:
+            hole = 0 if bridged[v] else hole + 1
+            band[v] = True
+            v += direction
+    rows = np.nonzero(band & bridged)[0]
+    band[: rows.min()] = band[rows.max() + 1 :] = False
+    every = np.arange(cam.height)
+    left, right, depth = (np.interp(every, rows, a[rows]) for a in (left, right, depth))
+    width = ndimage.median_filter(right - left, size=WIDTH_SMOOTHING, mode="nearest")
+    radius = 0.5 * width * depth / fx  # metres
+    middle = ((left + right) / 2 - cx) * depth / fx  # camera x of the centre, metres
+
+    def contains(points: np.ndarray) -> np.ndarray:
+        """(P,) bool: canonical ``points`` inside the garment's hull."""
+        posed = frame.to_input_pose(points)
+        x_cam = cam.world_to_camera(posed)
+        uv_p, _ = cam.project(posed)
+        v = np.floor(uv_p[:, 1]).astype(int)
+        ok = (v >= 0) & (v < cam.height) & (x_cam[:, 2] > 0)
+        ok[ok] = band[v[ok]]
+        hit = np.zeros(len(points), dtype=bool)
+        r = v[ok]
+        hit[ok] = (x_cam[ok, 0] - middle[r]) ** 2 + (x_cam[ok, 2] - depth[r]) ** 2 <= radius[r] ** 2
+        return hit & frame.in_mask(posed)
+
+    return contains
