@@ -8,7 +8,7 @@ import torch
 
 from elicit_diffrender.avatar import Avatar, sample_grid
 from elicit_diffrender.body import PART_NAMES
-from elicit_diffrender.fit.room import LEGS, MAX_REACH, InputFrame, input_room
+from elicit_diffrender.fit.room import LEG_PARTS, MAX_REACH, InputFrame, input_room
 from elicit_diffrender.io import write_image
 from elicit_diffrender.subject import load_subject
 from elicit_diffrender.synth import synthesize
@@ -66,7 +66,7 @@ def test_touching_thighs_are_not_a_skirt(subjects, tmp_path):
     The same mask bridging the legs down to where they stand 10 cm apart does make one."""
     plain, _ = subjects
     frame = InputFrame.load(plain)
-    legs = [np.isin(frame.labels, [PART_NAMES.index(n) for n in side]) for side in LEGS]
+    legs = [np.isin(frame.labels, side) for side in LEG_PARTS]
     metres_per_pixel = float(np.median(frame.camera.project(frame.posed)[1])) / frame.camera.K[0, 0]
     found = {}
     for limit in (0.04, 0.10):

@@ -34,6 +34,7 @@ MAX_REACH = 0.5  # metres: a mask further than this from the body is not the per
 MIN_SHARE = 0.002  # mask pixels beyond the margin, as a share of the mask, that count as more than the body
 WORK_SIZE = 512  # the mask is compared at most at this size (pixels, longer side)
 LEGS = (("left_thigh", "left_shin"), ("right_thigh", "right_shin"))
+LEG_PARTS = tuple(tuple(PART_NAMES.index(n) for n in side) for side in LEGS)  # indices into PART_NAMES, per side
 MIN_GAP = 0.07  # metres: a garment bridges a gap this wide between the legs somewhere (touching thighs do not)
 MAX_HOLE = 6  # rows: the garment's band runs on through this many rows that do not bridge
 WIDTH_SMOOTHING = 9  # rows: the garment's width is the running median over this many rows (a hand beside it)
@@ -77,9 +78,9 @@ class InputFrame:
             to_input_pose,
         )  # fmt: skip
 
-    def in_mask(self, points: np.ndarray, dilate: int = 0) -> np.ndarray:
-        """(P,) bool: input-pose ``points`` that project inside the (dilated) person mask."""
-        inside = ndimage.binary_dilation(self.person, iterations=dilate) if dilate else self.person
+    def in_mask(self, points: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """(P,) bool: input-pose ``points`` that project inside ``mask`` (default: the person mask)."""
+        inside = self.person if mask is None else mask
         uv, z = self.camera.project(points)
         px = np.floor(uv).astype(int)
         h, w = inside.shape
@@ -101,10 +102,11 @@ def input_room(subject: Subject, margin: float, garment: bool = True) -> Room:
     outside = frame.person & (beyond > margin) & (beyond < MAX_REACH)
     if outside.sum() >= MIN_SHARE * max(frame.person.sum(), 1):
         room.reach = float(np.percentile(beyond[outside], 99)) + SLACK
-        room.extends = lambda points: frame.in_mask(frame.to_input_pose(points), dilate=2)
+        grown = ndimage.binary_dilation(frame.person, iterations=2)
+        room.extends = lambda points: frame.in_mask(frame.to_input_pose(points), grown)
     hull = garment_hull(frame) if garment else None
     if hull is not None:
-        legs = frame.canonical[np.isin(frame.vertex_parts, [PART_NAMES.index(n) for side in LEGS for n in side])]
+        legs = frame.canonical[np.isin(frame.vertex_parts, np.ravel(LEG_PARTS))]
         lo, hi = legs.min(0) - MAX_REACH, legs.max(0) + MAX_REACH
         axes = [np.arange(lo[a], hi[a], HULL_LATTICE) for a in range(3)]
         lattice = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -123,8 +125,8 @@ def garment_hull(frame: InputFrame) -> Callable[[np.ndarray], np.ndarray] | None
     vertices). Thighs that touch bridge a narrow gap too, so only a band that bridges a gap of at least
     ``MIN_GAP`` counts; it runs from there up and down through bridged rows (holes up to ``MAX_HOLE`` rows)."""
     cam, person, labels = frame.camera, frame.person, frame.labels
-    leg_ids = [PART_NAMES.index(n) for side in LEGS for n in side]
-    legs = [np.isin(labels, [PART_NAMES.index(n) for n in side]) for side in LEGS]
+    leg_ids = np.ravel(LEG_PARTS)
+    legs = [np.isin(labels, side) for side in LEG_PARTS]
     passable = (labels < 0) | np.isin(labels, leg_ids)  # the run stops at arms and hands
     uv, z = cam.project(frame.posed)
     on_legs = np.isin(frame.vertex_parts, leg_ids)
@@ -134,9 +136,11 @@ def garment_hull(frame: InputFrame) -> Callable[[np.ndarray], np.ndarray] | None
         spans = sorted((c.min(), c.max()) for c in (np.nonzero(legs[0][v])[0], np.nonzero(legs[1][v])[0]))
         (a0, a1), (b0, b1) = spans
         between = slice(a1 + 1, b0)
+        if b0 - a1 < 3 or not person[v, between].all() or (labels[v, between] >= 0).all():
+            continue  # legs touching, apart in the photo, or joined by the body itself (the crotch)
         near = on_legs & (np.abs(uv[:, 1] - (v + 0.5)) <= 2.0)
-        if b0 - a1 < 3 or not person[v, between].all() or (labels[v, between] >= 0).all() or not near.any():
-            continue  # legs touching, apart in the photo, joined by the body itself (the crotch), or no vertices
+        if not near.any():
+            continue  # no leg vertices at this row
         x0, x1 = a0, b1
         while x0 > 0 and person[v, x0 - 1] and passable[v, x0 - 1]:
             x0 -= 1
