@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from collections.abc import Callable, Sequence
@@ -84,8 +85,10 @@ def grid_frame(grid, box: torch.Tensor, shape: tuple[int, ...]):
     return grid.make_frame(lo.tolist(), scale.tolist(), tuple(shape))
 
 
+@functools.cache
 def _cgroup_cpu_quota() -> int | None:
-    """CPUs allowed by a cgroup v2 quota (``cpu.max``: a container's ``--cpus``, a pod's limit), if any."""
+    """CPUs allowed by a cgroup v2 quota (``cpu.max``: a container's ``--cpus``, a pod's limit), if any;
+    read once (every kernel launch asks)."""
     try:
         quota, period = open("/sys/fs/cgroup/cpu.max").read().split()[:2]
     except (OSError, ValueError):

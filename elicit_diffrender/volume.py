@@ -115,6 +115,14 @@ def _ray_arguments(st, positions, fg, density, color, offsets, t_mid, deltas, bo
     return samples, grid
 
 
+def _saved(st, trans, raw, extinction, color, n_used):
+    """The forward pass's per-sample record for the backward (see ``kernels.raymarch``'s ``Saved``)."""
+    saved = st.Saved()
+    saved.trans, saved.raw, saved.extinction = to_warp(trans), to_warp(raw), to_warp(extinction)
+    saved.color, saved.n_used = to_warp(color, dtype=st.vec3), to_warp(n_used)
+    return saved
+
+
 def _ray_outputs(st, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor):
     out = st.RayOutputs()
     out.rgb, out.alpha, out.depth = to_warp(rgb, dtype=st.vec3), to_warp(alpha), to_warp(depth)
@@ -134,22 +142,25 @@ class _Composite(torch.autograd.Function):
         depth = _empty(n_rays if need_depth else 0, like=positions)
         fg_t = fg.contiguous() if has_fg else _empty(0, like=positions)
         color_t = color.contiguous() if need_rgb else _empty(1, 1, 1, 3, like=positions)
-        saved = st.Saved()
-        trans = _empty(positions.shape[0] if save else 0, like=positions)
+        n_saved = positions.shape[0] if save else 0
+        trans, raw, extinction = (torch.empty(n_saved, dtype=dtype, device=device) for _ in range(3))
+        saved_color = torch.empty(n_saved if need_rgb else 0, 3, dtype=dtype, device=device)
         n_used = torch.zeros(n_rays if save else 0, dtype=torch.int32, device=device)
-        saved.trans, saved.n_used = to_warp(trans), to_warp(n_used)
+        saved = _saved(st, trans, raw, extinction, saved_color, n_used)
         samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, box)
         kernel = composite_forward(warp_scalar(dtype), act, has_fg, need_rgb, need_depth, save)
         args = [samples, grid, t_thresh, _ray_outputs(st, rgb, acc, depth), saved]
         launch(kernel, n_rays, device, args)
-        ctx.save_for_backward(positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, n_used)
+        ctx.save_for_backward(
+            positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, raw, extinction, saved_color, n_used
+        )
         ctx.box, ctx.act, ctx.has_fg, ctx.need_rgb, ctx.need_depth = box, act, has_fg, need_rgb, need_depth
         ctx.mark_non_differentiable(*([] if need_rgb else [rgb]), *([] if need_depth else [depth]))
         return rgb, acc, depth
 
     @staticmethod
     def backward(ctx, g_rgb, g_acc, g_depth):
-        positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, n_used = ctx.saved_tensors
+        positions, fg_t, density, color_t, offsets, t_mid, deltas, *kept = ctx.saved_tensors
         device, dtype = positions.device, positions.dtype
         st = composite_structs(warp_scalar(dtype))
         n_rays = offsets.shape[0] - 1
@@ -165,8 +176,7 @@ class _Composite(torch.autograd.Function):
         else:
             grids = [(_empty(1, 1, 1, like=positions), _empty(1, 1, 1, 3, like=positions))] * n_parts
         samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)
-        saved = st.Saved()
-        saved.trans, saved.n_used = to_warp(trans), to_warp(n_used)
+        saved = _saved(st, *kept)
         grad_out = _ray_outputs(st, g_rgb, g_acc.contiguous(), g_depth)
 
         def gradients(part: int):

@@ -24,11 +24,12 @@ ray back to front, all three follow one recurrence from ``B_{n-1} = 0``::
 
     B_{i-1} = a_i c_i + (1 - a_i) B_i
 
-which only multiplies by ``1 - a_i``: no division by a vanishing transmittance, and ``T_i`` itself
-is saved by the forward pass. The chain rule then gives ``da_i/draw_i = fg_i exp(-sigma_i delta_i)
-delta_i act'(raw_i)``, ``da_i/dfg_i = 1 - exp(-sigma_i delta_i)``, ``dC/dc_i = w_i`` (times the
-sigmoid's ``c (1 - c)``), and the trilinear weights carry every raw gradient to the 8 grid nodes
-around ``x_i`` and to ``x_i`` itself.
+which only multiplies by ``1 - a_i``: no division by a vanishing transmittance. The forward pass saves
+``T_i``, the raw density, ``exp(-sigma_i delta_i)`` and ``c_i`` of every sample, so the backward pass
+reads the grids again only for gradients with respect to sample positions. The chain rule then gives
+``da_i/draw_i = fg_i exp(-sigma_i delta_i) delta_i act'(raw_i)``, ``da_i/dfg_i = 1 - exp(-sigma_i delta_i)``,
+``dC/dc_i = w_i`` (times the sigmoid's ``c (1 - c)``), and the trilinear weights carry every raw gradient
+to the 8 grid nodes around ``x_i`` and to ``x_i`` itself.
 
 Density activations: 0 = relu (HumanNeRF), 1 = softplus. Colour activation: sigmoid.
 """
@@ -186,9 +187,14 @@ def composite_structs(dtype) -> SimpleNamespace:
 
     @wp.struct
     class Saved:
-        """What the forward pass keeps for the backward: transmittance per sample, samples used per ray."""
+        """What the forward pass keeps for the backward: per sample the transmittance ``T_i``, the raw
+        density, ``exp(-sigma_i delta_i)`` and the activated colour (empty without ``rgb``); per ray the
+        samples used."""
 
         trans: wp.array(dtype=dtype)
+        raw: wp.array(dtype=dtype)
+        extinction: wp.array(dtype=dtype)
+        color: wp.array(dtype=vec3)
         n_used: wp.array(dtype=wp.int32)
 
     @wp.struct
@@ -277,13 +283,20 @@ def composite_forward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, sav
             ok, base, frac = g.locate(samples.positions[s], grid.frame)
             if ok:
                 w8 = g.corner_weights(frac)
-                sigma = fn.activate(g.lerp3(grid.density, base, w8))
-                a = dtype(1.0) - wp.exp(-sigma * samples.deltas[s])
+                raw = g.lerp3(grid.density, base, w8)
+                e = wp.exp(-fn.activate(raw) * samples.deltas[s])
+                a = dtype(1.0) - e
                 if wp.static(HAS_FG):
                     a = a * samples.fg[s]
+                if wp.static(SAVE):
+                    saved.raw[s] = raw
+                    saved.extinction[s] = e
                 w = T * a
                 if wp.static(RGB):
-                    C += w * fn.sigmoid3(g.lerp3v(grid.color, base, w8))
+                    c = fn.sigmoid3(g.lerp3v(grid.color, base, w8))
+                    if wp.static(SAVE):
+                        saved.color[s] = c
+                    C += w * c
                 if wp.static(DEPTH):
                     D += w * samples.t_mid[s]
                 T = T * (dtype(1.0) - a)
@@ -336,8 +349,8 @@ def composite_backward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, gr
             if ok:
                 T = saved.trans[s]
                 w8 = g.corner_weights(frac)
-                raw = g.lerp3(grid.density, base, w8)
-                e = wp.exp(-fn.activate(raw) * samples.deltas[s])
+                raw = saved.raw[s]
+                e = saved.extinction[s]
                 a0 = dtype(1.0) - e
                 f = dtype(1.0)
                 if wp.static(HAS_FG):
@@ -347,7 +360,7 @@ def composite_backward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, gr
                 ga = gA * T * (dtype(1.0) - BA)  # dL/da_i
                 gpos = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
                 if wp.static(RGB):
-                    c = fn.sigmoid3(g.lerp3v(grid.color, base, w8))
+                    c = saved.color[s]
                     ga += wp.dot(gC, T * (c - B))
                     gc = (T * a) * gC
                     graw_c = vec3(
