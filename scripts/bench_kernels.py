@@ -61,6 +61,7 @@ from elicit_diffrender.volume import composite, sample_rays  # noqa: E402
 
 BOX = torch.tensor([[-0.9, -1.0, -0.5], [0.9, 1.0, 0.5]])
 _FIRST_CALL: set[str] = set()
+TARGET_SPEEDUP = 5.0  # forward + backward against the pure-torch reference, at the default sizes
 
 
 def body_grid(res: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -288,8 +289,8 @@ def main() -> int:
         or (r["kernel"] == "skinning" and r["config"] == {"points": 100_000, "bones": 24, "weight_grid": 32})
     ]
     target = {
-        "speedup_min": 3.0,
-        "met": all(r["speedup"] >= 3.0 for r in defaults),
+        "speedup_min": TARGET_SPEEDUP,
+        "met": all(r["speedup"] >= TARGET_SPEEDUP for r in defaults),
         "default_speedups": {r["kernel"]: r["speedup"] for r in defaults},
     }
     data = {
@@ -329,7 +330,7 @@ def main() -> int:
         f"interleaved runs; both implementations float32, measured in the same process. "
         f"`first call` is the first launch of a kernel family in a fresh kernel cache (compilation included).\n\n"
         + markdown_table(rows, columns)
-        + "\nTarget: speedup >= 3 at the default sizes: "
+        + f"\nTarget: speedup >= {TARGET_SPEEDUP:g} at the default sizes: "
         + ", ".join(f"{k} x{v:.2f}" for k, v in target["default_speedups"].items())
         + f" -> {'met' if target['met'] else 'NOT met'}.\n"
     )
