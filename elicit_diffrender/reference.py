@@ -75,7 +75,9 @@ def inverse_lbs_reference(
     w = w.reshape(weights.shape[0], -1) * ((norm >= -1) & (norm <= 1)).all(-1)
     fg = w.sum(0)
     top, arg = w.detach().max(0)  # x_c does not depend on a common scale of the weights
-    u = torch.where(top > 0, w / top.clamp(min=1e-300), torch.zeros_like(w)) ** sharpness
+    # A point outside every bone's weights has top = 0; divide by 1 there, or the unused branch's 0 / 0 makes
+    # the gradient NaN.
+    u = torch.where(top > 0, w / torch.where(top > 0, top, torch.ones_like(top)), torch.zeros_like(w)) ** sharpness
     if gate > 0:  # only candidates near the dominant bone's are blended
         y_top = y.detach()[arg, torch.arange(y.shape[1])]
         u = torch.where((y.detach() - y_top).square().sum(-1) <= gate**2, u, torch.zeros_like(u))

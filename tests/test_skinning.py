@@ -64,6 +64,24 @@ def test_inverse_lbs_gradients_match_reference_autograd():
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-8)
 
 
+def test_reference_gradients_stay_finite_in_float32_where_no_bone_reaches():
+    """Points outside every bone's weights (top weight 0) once made the float32 reference's gradients NaN:
+    its guard against dividing by 0 was 1e-300, which is 0 in float32."""
+    gen = torch.Generator().manual_seed(9)
+    pts = 1.5 * torch.randn(500, 3, generator=gen)
+    mats = random_transforms(24, seed=10, dtype=torch.float32).requires_grad_()
+    weights = random_weights(24, res=(8, 8, 8), seed=11, dtype=torch.float32).requires_grad_()
+    box = WBOX.float()
+    grads = []
+    for warp in (inverse_lbs, inverse_lbs_reference):
+        x_c, fg = warp(pts, mats, weights, box)
+        grads.append(torch.autograd.grad(x_c.sum() + fg.sum(), (mats, weights)))
+    assert (fg == 0).any() and (fg > 0).any()
+    for ours, ref in zip(*grads, strict=True):
+        assert torch.isfinite(ref).all()
+        torch.testing.assert_close(ours, ref, atol=1e-4 * float(ref.abs().max()), rtol=1e-3)
+
+
 def test_only_requested_gradients_are_computed():
     pts = torch.randn(50, 3, dtype=torch.float64, requires_grad=True)
     mats = random_transforms(4)
