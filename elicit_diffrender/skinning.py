@@ -20,6 +20,14 @@ from .kernels.skinning import (
 
 MAX_BONES = 128
 MAX_SHARPNESS = 16
+# Copies of the bone gradients a CUDA backward pass sums into (point i into copy i % BONE_GRAD_COPIES), so that
+# its atomic adds do not all wait on the same few addresses; CPU pieces each have their own buffer instead.
+BONE_GRAD_COPIES = 256
+
+
+def bone_grad_copies(device: torch.device) -> int:
+    """How many copies of the bone gradients an inverse-LBS backward pass on ``device`` sums into."""
+    return BONE_GRAD_COPIES if device.type == "cuda" else 1
 
 
 def _warp_arguments(
@@ -64,10 +72,15 @@ class _InverseLBS(torch.autograd.Function):
         g_fg = torch.zeros(n, dtype=dtype, device=device) if g_fg is None else g_fg.contiguous()
         grad_points = torch.zeros_like(points) if need_points else torch.zeros((0, 3), dtype=dtype, device=device)
         parts = launch_parts(n, device)
+        copies = bone_grad_copies(device) if need_bones else 1
         tiny4 = torch.zeros((1, 1, 1, 1), dtype=dtype, device=device)
         # Per-thread buffers for everything several points add into.
         bufs = [
-            (torch.zeros_like(weights) if need_weights else tiny4, torch.zeros_like(rot), torch.zeros_like(trans))
+            (
+                torch.zeros_like(weights) if need_weights else tiny4,
+                rot.new_zeros((copies * rot.shape[0], 3, 3)),
+                trans.new_zeros((copies * trans.shape[0], 3)),
+            )
             for _ in range(parts)
         ]
         st, warp = _warp_arguments(rot, trans, weights, ctx.box, ctx.eps, ctx.gate)
@@ -84,7 +97,7 @@ class _InverseLBS(torch.autograd.Function):
 
         def per_part(part: int) -> list:
             gw, gr, gt = bufs[part]
-            return [*common, to_warp(gw), to_warp(gr, dtype=st.mat33), to_warp(gt, dtype=st.vec3)]
+            return [*common, to_warp(gw), to_warp(gr, dtype=st.mat33), to_warp(gt, dtype=st.vec3), copies]
 
         kernel = inverse_lbs_backward(
             warp_scalar(dtype), weights.shape[0], need_points, need_weights, need_bones, ctx.sharpness
@@ -95,6 +108,8 @@ class _InverseLBS(torch.autograd.Function):
             gw += w2
             gr += r2
             gt += t2
+        if copies > 1:
+            gr, gt = gr.view(copies, -1, 3, 3).sum(0), gt.view(copies, -1, 3).sum(0)
         return (
             grad_points if need_points else None,
             gr if need_bones else None,

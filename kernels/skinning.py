@@ -140,7 +140,9 @@ def inverse_lbs_forward(dtype, n_bones: int, sharpness: int = 1):
 @functools.cache
 def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones: bool, sharpness: int = 1):
     """Inverse-LBS backward (see the module docstring), computing the gradients for ``points``,
-    ``weights`` and ``bones`` (rotations and translations) that are asked for."""
+    ``weights`` and ``bones`` (rotations and translations) that are asked for. The bone gradients are summed
+    into ``copies`` copies of (B,) slots, point ``i`` into copy ``i % copies``: on a GPU every point of a
+    launch adds into the same B bones, and one copy makes those atomics wait on each other."""
     st = skinning_types(dtype)
     sh = sharpen_funcs(dtype, sharpness)
     g, vec3, mat33 = st.grid, st.vec3, st.mat33
@@ -160,8 +162,10 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
         grad_weights: wp.array4d(dtype=dtype),
         grad_rot: wp.array(dtype=mat33),
         grad_trans: wp.array(dtype=vec3),
+        copies: int,
     ):
         i = wp.tid() + i0
+        slot = (i % copies) * NB  # this point's copy of the bone gradients (fewer threads per atomic address)
         x = points[i]
         m = out_norm[i][0]
         su = out_norm[i][1]
@@ -189,8 +193,8 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
                 if wp.static(POINTS or BONES):
                     gy = u * gacc + gw * g.frac_to_world(gfrac, warp.frame)
                     if wp.static(BONES):
-                        wp.atomic_add(grad_rot, b, wp.outer(gy, x))
-                        wp.atomic_add(grad_trans, b, gy)
+                        wp.atomic_add(grad_rot, slot + b, wp.outer(gy, x))
+                        wp.atomic_add(grad_trans, slot + b, gy)
                     if wp.static(POINTS):
                         gp += wp.transpose(warp.rot[b]) * gy
         if wp.static(POINTS):

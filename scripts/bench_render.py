@@ -6,7 +6,7 @@ its own (only what is asked for), then all cameras in one batch-sensor launch ar
 launch per camera. The path-traced render (sky + key light, 3 bounces, same spp) is the cost of the
 light transport that the body prior's renders skip.
 
-    python scripts/bench_render.py [--views 8] [--spp 16] [--repeats 3]
+    python scripts/bench_render.py [--views 8] [--spp 16] [--repeats 3] [--variant cuda_ad_rgb] [--name render_cuda]
 """
 
 from __future__ import annotations
@@ -27,7 +27,13 @@ def main() -> int:
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
+    p.add_argument("--name", default="render", help="report file name (NAME.json, NAME.md)")
+    p.add_argument("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb on a GPU, else llvm_ad_rgb)")
     args = p.parse_args()
+    if args.variant:
+        import os
+
+        os.environ["ELICIT_MITSUBA_VARIANT"] = args.variant
 
     from elicit_diffrender.benchtools import markdown_table, write_report
     from elicit_diffrender.body import load_body
@@ -114,7 +120,7 @@ def main() -> int:
             ],
         )
     )
-    json_path, md_path = write_report(args.out, "render", data, md)
+    json_path, md_path = write_report(args.out, args.name, data, md)
     print(md)
     print(f"wrote {json_path} and {md_path}")
     return 0

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from devices import DEVICE
 
 from elicit_diffrender.animate import load_avatar
 from elicit_diffrender.avatar import Avatar, AvatarError
@@ -48,7 +49,7 @@ def tiny_avatar(tiny_subject):
     cfg = make_config("cpu-fast", None, TINY)
     return Avatar.from_body(
         tiny_subject.body, tiny_subject.body_spec, cfg.voxel_size, occupancy_cell=0.06, weight_res=16
-    )
+    ).to(DEVICE)
 
 
 def test_crop_camera_renders_exactly_the_crop(tiny_subject, tiny_avatar):
@@ -168,7 +169,7 @@ def test_the_refined_input_pose_travels_with_the_avatar(tmp_path, tiny_subject):
     # An avatar fitted without it (or saved before the key existed) renders every pose as given.
     state = back.state()
     del state["tensors"]["refined_pose"]
-    plain = Avatar.from_state(state)
+    plain = Avatar.from_state(state).to(back.device)
     torch.testing.assert_close(plain.bone_transforms(*inp), raw)
 
 
@@ -300,8 +301,17 @@ class StopAt(Trainer):
             (self.run_dir / "kept.safetensors").write_bytes((self.run_dir / CHECKPOINT).read_bytes())
 
 
+def same_fit(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Bit for bit on the CPU. On CUDA the kernels' gradient sums are atomic adds in no fixed order, so two runs
+    of the same fit agree to rounding, not bitwise."""
+    if a.device.type == "cpu":
+        return torch.equal(a, b)
+    return torch.allclose(a, b, rtol=1e-3, atol=1e-3)
+
+
 def test_previews_and_resume_never_change_the_avatar(tmp_path, tiny_subject):
-    """Same seed, same avatar, bit for bit: with another preview cadence, and when resumed from a checkpoint."""
+    """Same seed, same avatar: with another preview cadence, and when resumed from a checkpoint (bit for bit on the
+    CPU)."""
     base = TINY + ["steps=30", "guard_every=15"]
     a = StopAt(tiny_subject, make_config("cpu-fast", None, base + ["preview_every=7"]), tmp_path / "a")
     a.run()
@@ -309,7 +319,7 @@ def test_previews_and_resume_never_change_the_avatar(tmp_path, tiny_subject):
     b.run()
     assert len(list((tmp_path / "a" / "previews").glob("*.png"))) > len(list((tmp_path / "b" / "previews").glob("*")))
     for k, v in a.avatar.state_dict().items():
-        assert torch.equal(v, b.avatar.state_dict()[k]), k
+        assert same_fit(v, b.avatar.state_dict()[k]), k
     # Resume from a's step-20 checkpoint in a fresh folder: the same avatar as a's uninterrupted fit.
     c_dir = tmp_path / "c"
     c_dir.mkdir()
@@ -318,7 +328,7 @@ def test_previews_and_resume_never_change_the_avatar(tmp_path, tiny_subject):
     c = Trainer(tiny_subject, make_config("cpu-fast", None, base + ["preview_every=1000"]), c_dir)
     report = c.run(resume=True)
     for k, v in a.avatar.state_dict().items():
-        assert torch.equal(v, c.avatar.state_dict()[k]), k
+        assert same_fit(v, c.avatar.state_dict()[k]), k
     # Stage times add up over both runs: stage 1 ran only in a's, and still counts.
     assert report["seconds"]["stage1"] > 0 and report["seconds"]["total"] >= report["seconds"]["stage2"]
 
@@ -327,7 +337,7 @@ def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
     cfg = make_config("cpu-fast", None, TINY + ["p_novel=0.3"])
     trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
     cam = trainer.views.input.camera
-    target = trainer.views.input.image.permute(1, 2, 0).numpy()
+    target = trainer.views.input.image.permute(1, 2, 0).cpu().numpy()
     mask = np.ones(target.shape[:2], bool)
 
     def input_psnr():

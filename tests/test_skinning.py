@@ -4,10 +4,14 @@ import math
 
 import pytest
 import torch
+from devices import on_device
 
 from elicit_diffrender.geometry import axis_angle_to_matrix, matrix_to_axis_angle, merge_bones, rigid_inverse
 from elicit_diffrender.reference import forward_lbs_reference, inverse_lbs_reference
-from elicit_diffrender.skinning import forward_lbs, inverse_lbs
+from elicit_diffrender.skinning import forward_lbs as _forward_lbs
+from elicit_diffrender.skinning import inverse_lbs as _inverse_lbs
+
+forward_lbs, inverse_lbs = on_device(_forward_lbs), on_device(_inverse_lbs)  # kernels on ELICIT_DEVICE
 
 WBOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
 
@@ -62,6 +66,22 @@ def test_inverse_lbs_gradients_match_reference_autograd():
     g2 = torch.autograd.grad((ref[0] * wx).sum() + (ref[1] * wfg).sum(), (pts, mats, weights))
     for a, b in zip(g1, g2, strict=True):
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-8)
+
+
+def test_bone_gradients_summed_over_copies_match_the_reference(monkeypatch):
+    """On a GPU the backward pass adds each point's bone gradients into one of several copies (fewer atomics
+    on one address) and sums them after; forced here on any device, with a count that does not divide P."""
+    import elicit_diffrender.skinning as skinning
+
+    monkeypatch.setattr(skinning, "bone_grad_copies", lambda device: 7)
+    gen = torch.Generator().manual_seed(21)
+    pts = 0.5 * torch.randn(1000, 3, generator=gen, dtype=torch.float64)
+    mats = random_transforms(24, seed=22).requires_grad_()
+    weights = random_weights(24, res=(8, 8, 8), seed=23).requires_grad_()
+    ours = torch.autograd.grad(sum(t.sum() for t in inverse_lbs(pts, mats, weights, WBOX, sharpness=4)), mats)[0]
+    ref = torch.autograd.grad(sum(t.sum() for t in inverse_lbs_reference(pts, mats, weights, WBOX, sharpness=4)), mats)
+    torch.testing.assert_close(ours, ref[0], atol=1e-10, rtol=1e-8)
+    assert ours[:, :3].abs().max() > 1.0  # the points reach the bones: the gradient is not trivially zero
 
 
 def test_reference_gradients_stay_finite_in_float32_where_no_bone_reaches():

@@ -4,10 +4,15 @@ import math
 
 import pytest
 import torch
+from devices import on_device
 
 from elicit_diffrender.device import to_warp
 from elicit_diffrender.reference import composite_reference
-from elicit_diffrender.volume import RaySamples, composite, sample_rays
+from elicit_diffrender.volume import RaySamples
+from elicit_diffrender.volume import composite as _composite
+from elicit_diffrender.volume import sample_rays as _sample_rays
+
+composite, sample_rays = on_device(_composite), on_device(_sample_rays)  # kernels on ELICIT_DEVICE
 
 BOX = torch.tensor([[-1.0, -1.2, -0.8], [1.0, 1.1, 0.9]])
 
