@@ -8,11 +8,15 @@ differently from Anny, shifted by ``KEYPOINT_OFFSETS``) and the mesh to the pers
 (every vertex inside the mask; every mask pixel near some vertex), coarse to fine, from two starts
 (facing the camera or away) so that a mirrored body is escaped. Keypoints and a silhouette leave
 depth nearly free (the body's turn about the vertical, how far a limb reaches towards the camera);
-MediaPipe's metric landmarks fix it: the model's shoulder, hip and trunk lines and its visible arm
-and thigh segments (``WORLD_LINES``) are pulled onto theirs, as directions only (their lengths would
-drive the phenotype). MediaPipe's metric shins are not used: on seven synthetic subjects they lean
-9-16 degrees away from the true ones, always with the ankles back. Priors keep the pose near rest
-(knees nearly straight, knees and elbows bending the right way) and the phenotype near average.
+MediaPipe's metric landmarks fix it: the model's shoulder, hip and trunk lines and its visible
+thighs (``WORLD_LINES``) are pulled onto theirs, as directions only (their lengths would drive the
+phenotype). MediaPipe's metric shins and arms are not used: on seven synthetic subjects its shins
+lean 9-16 degrees away from the true ones, always with the ankles back; on six (seeds 1-3, 9-11) its
+upper arms are 6-36 degrees off and its forearms 8-56. An elbow is a hinge, so how far a forearm reaches
+towards the camera shows in its foreshortening in the image, and the hinge prior says to which side;
+the upper arms are held near the body's frontal plane (``ARM_PLANE_WEIGHT``). Priors keep the pose
+near rest (knees nearly straight, knees and elbows bending the right way) and the phenotype near
+average.
 """
 
 from __future__ import annotations
@@ -90,15 +94,21 @@ WORLD_WEIGHT = 1.0  # weight of the metric-landmark direction term against the k
 # The body's lines that MediaPipe's metric landmarks fix: name -> (from, to), each the mean of landmarks.
 WORLD_LINES = {
     "shoulders": ((12,), (11,)), "hips": ((24,), (23,)), "trunk": ((23, 24), (11, 12)),
-    "left_upper_arm": ((11,), (13,)), "right_upper_arm": ((12,), (14,)), "left_forearm": ((13,), (15,)),
-    "right_forearm": ((14,), (16,)), "left_thigh": ((23,), (25,)), "right_thigh": ((24,), (26,)),
+    "left_thigh": ((23,), (25,)), "right_thigh": ((24,), (26,)),
 }  # fmt: skip
 TORSO_LINES = ("shoulders", "hips", "trunk")  # the lines the coarse (placement-only) stage matches
 # Bending the wrong way costs: the knee's flexion axis is +x (world), the elbow's -x in the rest frame.
 HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lowerarm01.R": -1.0}
 # Extra cost on knee rotation (rad^2, inside ``prior``): a few pixels of knee or foot landmark error would
-# otherwise bend the knees 10-20 degrees out of the image plane (measured on the synthetic subjects).
-KNEE_WEIGHT = 100.0
+# otherwise bend the knees 10-20 degrees out of the image plane (measured on the synthetic subjects; 400 left
+# the knees 1-3 cm nearer their true depth than 100 on the photo-path benchmark's subjects).
+KNEE_WEIGHT = 400.0
+# Cost of each upper arm leaving the body's frontal plane (the square of its direction's component along the
+# torso's normal). Nothing in one photo says how far an upper arm reaches towards or away from the camera:
+# MediaPipe's metric upper arms were 6-36 degrees off the true ones on six synthetic subjects (0.5-20 with this
+# prior and no metric arms).
+ARM_PLANE_WEIGHT = 1.0
+ARMS = (("upperarm01.L", "lowerarm01.L"), ("upperarm01.R", "lowerarm01.R"))  # shoulder and elbow joints
 
 
 def procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,6 +180,19 @@ class AnnyFit(torch.nn.Module):
             bend = bend + F.relu(-sign * (self.rotvecs[k] @ axis)) ** 2
         knees = (self.rotvecs[self.knees] ** 2).sum()
         return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend + KNEE_WEIGHT * knees
+
+    def arm_plane(self, heads: torch.Tensor) -> torch.Tensor:
+        """How far the upper arms leave the torso's frontal plane: the sum over both arms of the squared
+        component of the shoulder -> elbow direction along the plane's normal (the shoulder line crossed with the
+        trunk, from the joint ``heads`` (J, 3))."""
+        j = self.names.index
+        left, right = heads[j("upperarm01.L")], heads[j("upperarm01.R")]
+        hips = (heads[j("upperleg01.L")] + heads[j("upperleg01.R")]) / 2
+        normal = torch.linalg.cross(left - right, (left + right) / 2 - hips)
+        normal = normal / normal.norm().clamp(min=1e-9)
+        arms = torch.stack([heads[j(elbow)] - heads[j(shoulder)] for shoulder, elbow in ARMS])
+        arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
+        return ((arms @ normal) ** 2).sum()
 
     def result(self) -> dict:
         pose = np.zeros((len(self.names), 3))
@@ -422,6 +445,7 @@ def fit_anny_to_image(
         def loss():
             verts, heads, rots = fit()
             total = 1e-3 * fit.prior() + WORLD_WEIGHT * world_loss(verts, heads, rots)
+            total = total + ARM_PLANE_WEIGHT * fit.arm_plane(heads)
             if keypoints is not None:
                 total = total + kp_loss(verts, heads, rots)
             if joints3d is not None:
