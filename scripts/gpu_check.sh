@@ -124,7 +124,6 @@ if "tests" in report:
 print("\n".join(lines))
 (out / "gpu_check.md").write_text("\n".join(lines) + "\n")
 EOF
-cp -r "$WORK/fit/run.json" "$WORK/fit/metrics.json" "$WORK/fit/"*.png "$LOGS/" 2>/dev/null
-find "$WORK/fit" -maxdepth 2 -name "*grid*.png" -exec cp {} "$LOGS/" \; 2>/dev/null
+cp "$WORK/fit/run.json" "$WORK/fit/metrics.json" "$WORK/fit/"*.png "$LOGS/" 2>/dev/null  # eval's grids too
 tar -czf "$OUT/logs.tar.gz" -C "$WORK" logs
 echo "[gpu_check] wrote $OUT"

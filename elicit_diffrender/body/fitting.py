@@ -151,6 +151,10 @@ class AnnyFit(torch.nn.Module):
         self.labels = list(model.phenotype_labels)
         self.free = torch.tensor([self.names.index(n) for n in FREE_JOINTS])
         self.knees = [FREE_JOINTS.index(n) for n in ("lowerleg01.L", "lowerleg01.R")]
+        self.torso_joints = [
+            self.names.index(n) for n in ("upperarm01.L", "upperarm01.R", "upperleg01.L", "upperleg01.R")
+        ]
+        self.arm_joints = torch.tensor([[self.names.index(n) for n in arm] for arm in ARMS])  # (2, shoulder/elbow)
         self.rotvecs = torch.nn.Parameter(torch.zeros(len(FREE_JOINTS), 3, dtype=torch.float64))
         self.pheno = torch.nn.Parameter(torch.zeros(len(self.labels), dtype=torch.float64))
         self.g_rot = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
@@ -185,12 +189,10 @@ class AnnyFit(torch.nn.Module):
         """How far the upper arms leave the torso's frontal plane: the sum over both arms of the squared
         component of the shoulder -> elbow direction along the plane's normal (the shoulder line crossed with the
         trunk, from the joint ``heads`` (J, 3))."""
-        j = self.names.index
-        left, right = heads[j("upperarm01.L")], heads[j("upperarm01.R")]
-        hips = (heads[j("upperleg01.L")] + heads[j("upperleg01.R")]) / 2
-        normal = torch.linalg.cross(left - right, (left + right) / 2 - hips)
+        left, right, hip_left, hip_right = heads[self.torso_joints]
+        normal = torch.linalg.cross(left - right, (left + right) / 2 - (hip_left + hip_right) / 2)
         normal = normal / normal.norm().clamp(min=1e-9)
-        arms = torch.stack([heads[j(elbow)] - heads[j(shoulder)] for shoulder, elbow in ARMS])
+        arms = heads[self.arm_joints[:, 1]] - heads[self.arm_joints[:, 0]]
         arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
         return ((arms @ normal) ** 2).sum()
 
