@@ -16,9 +16,12 @@
 # (default 1000,1500: a tenth of the paper's schedule). TESTS: the test files (default: kernels and fit).
 set -uo pipefail
 cd "$(dirname "$0")/.."
-OUT=${1:?usage: scripts/gpu_check.sh OUT SUBJECT [INIT_STEPS,STEPS]}
-SUBJECT=${2:?usage: scripts/gpu_check.sh OUT SUBJECT [INIT_STEPS,STEPS]}
+usage() { echo "gpu_check.sh: $1 (usage: scripts/gpu_check.sh OUT SUBJECT [INIT_STEPS,STEPS])" >&2; exit 2; }
+[ $# -ge 2 ] || usage "OUT and SUBJECT are required"
+OUT=$1 SUBJECT=$2
+[ -f "$SUBJECT/subject.json" ] || usage "$SUBJECT: not a subject folder (no subject.json)"
 IFS=, read -r INIT_STEPS FIT_STEPS <<<"${3:-1000,1500}"
+[[ $INIT_STEPS =~ ^[0-9]+$ && $FIT_STEPS =~ ^[0-9]+$ ]] || usage "${3}: steps must be INIT_STEPS,STEPS (integers)"
 PY=${PYTHON:-$([ -x .venv/bin/python ] && echo .venv/bin/python || echo python3)}
 mkdir -p "$OUT" && OUT=$(cd "$OUT" && pwd)
 WORK=$(mktemp -d) LOGS=$WORK/logs
