@@ -24,7 +24,7 @@ from .field import CanonicalField, MotionWeights, Room, grid_points, grid_shape,
 from .geometry import axis_angle_to_matrix, rigid_inverse
 from .io import write_tensors
 from .skinning import inverse_lbs, lookup_baked_warp
-from .volume import composite, sample_rays
+from .volume import BakedWarp, composite, sample_rays
 
 FORMAT = "elicit-avatar/2"  # a safetensors file: the tensors, and the rest as JSON in its header
 AVATAR_FILE = "avatar.safetensors"  # in a run folder
@@ -91,6 +91,8 @@ class Avatar(nn.Module):
         # The body-model pose (pose, orient, transl, flattened) that ``pose_delta`` corrects; empty: none
         self.register_buffer("refined_pose", torch.zeros(0, dtype=torch.float64))
         self._body: BodyModel | None = None
+        # The canonical body's signed distance at the field's nodes (``from_body``; not stored in files)
+        self.body_sdf: np.ndarray | None = None
 
     # ---- construction ------------------------------------------------------------------------------
     @classmethod
@@ -134,8 +136,9 @@ class Avatar(nn.Module):
             config,
         )
         avatar.motion_weights.init_from_body(verts, normals, body.reduced_weights(), room, avatar.room_weight)
+        avatar.body_sdf = avatar.field.body_distance(verts, normals)
         if body_prior:
-            avatar.field.init_from_body(verts, normals, room=room)
+            avatar.field.init_from_body(avatar.body_sdf, verts, normals, room=room)
         avatar._body = body
         return avatar
 
@@ -292,13 +295,17 @@ class Avatar(nn.Module):
         outputs: tuple[str, ...] = ("rgb", "alpha"),
         t_thresh: float = 1e-3,
         space: tuple[torch.Tensor, torch.Tensor | None] | None = None,
-        baked: tuple[torch.Tensor, torch.Tensor] | None = None,
+        warp: BakedWarp | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Render rays in the pose ``bones`` (B, 4, 4); colour is composited over ``background``. ``baked``:
-        the pose's warp as a look-up table (:meth:`bake_warp`, with its box) instead of the exact warp."""
+        """Render rays in the pose ``bones`` (B, 4, 4); colour is composited over ``background``. ``warp``: the
+        pose's warp as a look-up table (:meth:`bake_warp`) that the ray sampler applies, instead of the exact
+        warp of every sample."""
         box, occ = space if space is not None else self.observation_space(bones.detach())
-        samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ)
-        x_c, fg = self.warp_points(samples.positions, bones, baked)
+        samples = sample_rays(origins, dirs, box, n_samples, jitter=jitter, seed=seed, occupancy=occ, warp=warp)
+        if warp is not None:
+            x_c, fg = samples.positions, self.foreground(samples.fg)
+        else:
+            x_c, fg = self.warp_points(samples.positions, bones)
         f = self.field
         out = composite(
             samples,

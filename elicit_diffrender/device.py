@@ -6,6 +6,7 @@ import functools
 import os
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
@@ -80,9 +81,9 @@ def warp_scalar(dtype: torch.dtype):
 def grid_frame(grid, box: torch.Tensor, shape: tuple[int, ...]):
     """The ``GridFrame`` struct (of ``grid = grid_funcs(dtype)``) locating a node-aligned grid of
     ``shape`` over ``box`` (2, 3)."""
-    lo, hi = box[0].double(), box[1].double()
-    scale = (torch.tensor(shape, dtype=torch.float64) - 1) / (hi - lo)
-    return grid.make_frame(lo.tolist(), scale.tolist(), tuple(shape))
+    lo, hi = box.double().tolist()  # Python floats: float64 arithmetic without small-tensor overheads
+    scale = [(n - 1) / (b - a) for n, a, b in zip(shape, lo, hi, strict=True)]
+    return grid.make_frame(lo, scale, tuple(shape))
 
 
 @functools.cache
@@ -159,8 +160,22 @@ def launch(
     split_launch(n_items, n_parts, lambda b, e, p: wp.launch(kernel, dim=e - b, inputs=[b, *per_part(p)], device=wdev))
 
 
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The worker threads that run the pieces of split launches (created once: starting threads per launch cost
+    about a millisecond per training step)."""
+    global _POOL
+    with _INIT_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max_workers=max(1, cpu_threads() - 1), thread_name_prefix="elicit-launch")
+    return _POOL
+
+
 def split_launch(n_items: int, parts: int, run: Callable[[int, int, int], None]) -> None:
-    """Call ``run(begin, end, part)`` for ``parts`` contiguous pieces of [0, n_items), in parallel.
+    """Call ``run(begin, end, part)`` for ``parts`` contiguous pieces of [0, n_items), in parallel: piece 0 on
+    the calling thread, the others on a shared pool of worker threads.
 
     Warp releases the GIL during a CPU launch, so Python threads give real parallelism.
     """
@@ -168,19 +183,16 @@ def split_launch(n_items: int, parts: int, run: Callable[[int, int, int], None])
         run(0, n_items, 0)
         return
     bounds = [n_items * p // parts for p in range(parts + 1)]
-    errors: list[BaseException] = []
-
-    def work(p: int) -> None:
+    pending = [_pool().submit(run, bounds[p], bounds[p + 1], p) for p in range(1, parts)]
+    error: BaseException | None = None
+    try:
+        run(bounds[0], bounds[1], 0)
+    except BaseException as exc:  # noqa: BLE001 - re-raised once every piece has finished
+        error = exc
+    for future in pending:
         try:
-            run(bounds[p], bounds[p + 1], p)
-        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
-            errors.append(exc)
-
-    threads = [threading.Thread(target=work, args=(p,)) for p in range(1, parts)]
-    for t in threads:
-        t.start()
-    work(0)
-    for t in threads:
-        t.join()
-    if errors:
-        raise errors[0]
+            future.result()
+        except BaseException as exc:  # noqa: BLE001
+            error = error or exc
+    if error is not None:
+        raise error

@@ -30,17 +30,23 @@ def grid_points(box: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
 
 
+def nearest(tree: cKDTree, points: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(points, k)`` on the CPUs this process is given (distances and indices)."""
+    from .device import cpus_given
+
+    return tree.query(points, k=k, workers=cpus_given())
+
+
 def signed_distance(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, k: int = 4) -> np.ndarray:
     """Approximate signed distance to a closed mesh: distance to the nearest vertices, signed by their normals."""
-    tree = cKDTree(vertices)
-    dist, idx = tree.query(points, k=k)
+    dist, idx = nearest(cKDTree(vertices), points, k)
     sign = np.sign(np.einsum("pkc,pkc->pk", points[:, None] - vertices[idx], normals[idx]).mean(1))
     return dist[:, 0] * np.where(sign == 0, 1.0, sign)
 
 
 def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray, k: int = 8) -> np.ndarray:
     """(P, B) skinning weights at ``points``: the inverse-square-distance blend of the ``k`` nearest vertices'."""
-    dist, idx = cKDTree(vertices).query(points, k=k)
+    dist, idx = nearest(cKDTree(vertices), points, k)
     w = 1.0 / np.maximum(dist, 1e-3) ** 2
     return np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
 
@@ -98,16 +104,20 @@ class CanonicalField(nn.Module):
         raw = self.density.detach()
         return F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
 
+    def body_distance(self, vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(X, Y, Z) the signed distance of every node to the canonical body (:func:`signed_distance`)."""
+        pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
+        return signed_distance(pts, vertices, normals).reshape(self.shape)
+
     def init_from_body(
-        self, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, room: Room | None = None
+        self, sdf: np.ndarray, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, room: Room | None = None
     ) -> None:
-        """Start from the body prior: opaque inside the canonical mesh, empty outside.
+        """Start from the body prior: opaque inside the canonical mesh, empty outside; ``sdf`` is
+        :meth:`body_distance` of the body (``vertices``, ``normals``).
 
         ``room`` limits the occupancy grid to the points within its room of the body (clothing, hair),
         so rays skip the rest of the box from the first step on.
         """
-        pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
-        sdf = signed_distance(pts, vertices, normals).reshape(self.shape)
         # A smooth step from `inside` (one voxel inside the surface) to empty (one voxel outside).
         t = np.clip(0.5 - sdf / (2 * self.voxel_size), 0.0, 1.0)
         with torch.no_grad():
@@ -128,7 +138,7 @@ class CanonicalField(nn.Module):
     def set_colors_by_part(self, vertices: np.ndarray, vertex_parts: np.ndarray, part_colors: np.ndarray) -> None:
         """Colour every cell with the colour of the body part of its nearest body vertex."""
         pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
-        _, idx = cKDTree(vertices).query(pts)
+        _, idx = nearest(cKDTree(vertices), pts)
         rgb = np.clip(part_colors[vertex_parts[idx]], 0.02, 0.98)
         logits = np.log(rgb / (1 - rgb)).reshape(*self.shape, 3)
         self.color.copy_(torch.as_tensor(logits, dtype=torch.float32))
@@ -138,19 +148,21 @@ class CanonicalField(nn.Module):
         start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
         return tuple(slice(s, s + block) for s in start)
 
-    def tv_loss(self, block: tuple[slice, ...]) -> torch.Tensor:
-        """Total variation: mean squared neighbour difference of density and colour in ``block``."""
-        loss = torch.zeros((), device=self.density.device)
-        for grid in (self.density[block], self.color[block]):
+    @staticmethod
+    def tv_loss(density: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
+        """Total variation: mean squared neighbour difference of a block of the density (X, Y, Z) and colour
+        (X, Y, Z, 3) grids."""
+        loss = torch.zeros((), device=density.device)
+        for grid in (density, color):
             for axis in range(3):
                 loss = loss + torch.diff(grid, dim=axis).pow(2).mean()
         return loss
 
-    def sparsity_loss(self, block: tuple[slice, ...], where: torch.Tensor) -> torch.Tensor:
-        """Cauchy sparsity ``log(1 + 2 sigma^2)`` of the density in ``block``, counted where ``where`` is 1."""
-        raw = self.density[block]
-        sigma = F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
-        return (torch.log1p(2 * sigma**2) * where[block]).mean()
+    def sparsity_loss(self, density: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+        """Cauchy sparsity ``log(1 + 2 sigma^2)`` of a block of the raw density, counted where ``where`` (the same
+        block of a mask) is 1."""
+        sigma = F.softplus(density) if self.activation == "softplus" else torch.relu(density)
+        return (torch.log1p(2 * sigma**2) * where).mean()
 
 
 ROOM_BLEND = 0.02  # metres outside the surface where the motion weights pass from the body's to the room's

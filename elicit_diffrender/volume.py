@@ -36,6 +36,8 @@ class RaySamples:
     t_mid: torch.Tensor  # (P,) distance along the (unit) ray
     deltas: torch.Tensor  # (P,) segment length
     ray_ids: torch.Tensor  # (P,) int32
+    # With a baked warp (:class:`BakedWarp`): each sample's foreground likelihood, and ``positions`` are canonical
+    fg: torch.Tensor | None = None
 
     @property
     def n_rays(self) -> int:
@@ -46,6 +48,17 @@ class RaySamples:
         return self.positions.shape[0]
 
 
+@dataclass
+class BakedWarp:
+    """A pose's inverse warp baked into a look-up table, for :func:`sample_rays` to warp its samples with.
+
+    ``table`` (X, Y, Z, 4) over ``box`` (2, 3), as :func:`elicit_diffrender.skinning.lookup_baked_warp` reads it.
+    """
+
+    table: torch.Tensor
+    box: torch.Tensor
+
+
 def sample_rays(
     origins: torch.Tensor,
     dirs: torch.Tensor,
@@ -54,24 +67,26 @@ def sample_rays(
     jitter: bool = False,
     seed: int = 0,
     occupancy: torch.Tensor | None = None,
+    warp: BakedWarp | None = None,
 ) -> RaySamples:
     """Stratified samples between each ray's entry and exit of ``box`` (2, 3).
 
     ``dirs`` should be unit length so that ``t_mid`` and ``deltas`` are distances. With ``jitter``
     each sample moves randomly inside its bin (training); without, it sits at the bin centre.
-    ``occupancy`` (uint8, any resolution, covering ``box``) drops samples in empty cells.
+    ``occupancy`` (uint8, any resolution, covering ``box``) drops samples in empty cells. With ``warp``
+    the samples come out in canonical space with their foreground likelihood (``fg``); samples whose
+    likelihood is 0 are dropped, since they would add nothing to a render.
     """
     if origins.shape != dirs.shape or origins.ndim != 2 or origins.shape[1] != 3:
         raise ValueError(f"origins and dirs must both be (R, 3), got {tuple(origins.shape)} and {tuple(dirs.shape)}")
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1, got {n_samples}")
     device, dtype = origins.device, origins.dtype
-    k = sampling_kernels(warp_scalar(dtype), bool(jitter), occupancy is not None)
+    baked = warp is not None
+    k = sampling_kernels(warp_scalar(dtype), bool(jitter), occupancy is not None, baked)
     n_rays = origins.shape[0]
-    if occupancy is None:
-        occ_t = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
-    else:
-        occ_t = occupancy.to(device=device, dtype=torch.uint8).contiguous()
+    tiny = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
+    occ_t = tiny if occupancy is None else occupancy.to(device=device, dtype=torch.uint8).contiguous()
     rays = [
         to_warp(origins.contiguous(), dtype=k.vec3),
         to_warp(dirs.contiguous(), dtype=k.vec3),
@@ -81,19 +96,31 @@ def sample_rays(
         seed,
         to_warp(occ_t),
     ]
-    counts = torch.zeros(n_rays, dtype=torch.int32, device=device)
-    launch(k.count, n_rays, device, [*rays, to_warp(counts)])
+    baked_args = k.BakedWarp()
+    if baked:
+        baked_args.table = to_warp(warp.table.contiguous(), dtype=k.vec4)
+        baked_args.frame = grid_frame(k.grid, warp.box.detach().cpu(), warp.table.shape[:3])
+    n_kept = n_rays * n_samples if baked else 0
+    counts = torch.empty(n_rays, dtype=torch.int32, device=device)
+    kept_t = torch.empty(n_rays * n_samples, dtype=dtype, device=device)
+    kept_x = torch.empty((n_kept, 3), dtype=dtype, device=device)
+    kept_fg = torch.empty(n_kept, dtype=dtype, device=device)
+    steps = torch.empty(n_rays, dtype=dtype, device=device)
+    kept = [to_warp(kept_t), to_warp(kept_x, dtype=k.vec3), to_warp(kept_fg)]
+    launch(k.count, n_rays, device, [*rays, baked_args, to_warp(counts), *kept, to_warp(steps)])
     offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=device)
-    offsets[1:] = torch.cumsum(counts, 0)
+    torch.cumsum(counts, 0, out=offsets[1:])
     total = int(offsets[-1].item())
     positions = torch.empty((total, 3), dtype=dtype, device=device)
     t_mid = torch.empty(total, dtype=dtype, device=device)
     deltas = torch.empty(total, dtype=dtype, device=device)
     ray_ids = torch.empty(total, dtype=torch.int32, device=device)
+    fg = torch.empty(total if baked else 0, dtype=dtype, device=device)
     if total:
-        outs = [to_warp(t) for t in (offsets, t_mid, deltas, ray_ids)] + [to_warp(positions, dtype=k.vec3)]
-        launch(k.fill, n_rays, device, [*rays, *outs])
-    return RaySamples(offsets, positions, t_mid, deltas, ray_ids)
+        outs = [to_warp(t) for t in (offsets, t_mid, deltas, ray_ids)]
+        outs += [to_warp(positions, dtype=k.vec3), to_warp(fg)]
+        launch(k.fill, n_rays, device, [*rays[:2], n_samples, *kept, to_warp(steps), *outs])
+    return RaySamples(offsets, positions, t_mid, deltas, ray_ids, fg if baked else None)
 
 
 def _empty(*shape: int, like: torch.Tensor) -> torch.Tensor:

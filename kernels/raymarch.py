@@ -40,6 +40,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from .grid import grid_funcs
+from .skinning import baked_warp_lookup
 
 ACT_RELU = 0
 ACT_SOFTPLUS = 1
@@ -47,10 +48,26 @@ OPTIONS = {"optimization_level": 3}
 
 
 @functools.cache
-def sampling_kernels(dtype, jitter: bool, use_occupancy: bool) -> SimpleNamespace:
-    """Stratified sampling inside a box (counting pass, then filling pass) for scalar type ``dtype``."""
-    vec3 = grid_funcs(dtype).vec3
-    JITTER, USE_OCC = jitter, use_occupancy
+def sampling_kernels(dtype, jitter: bool, use_occupancy: bool, baked: bool = False) -> SimpleNamespace:
+    """Stratified sampling inside a box for scalar type ``dtype``: a counting pass places every sample and keeps
+    its ``t`` (or -1 where it is dropped), a filling pass packs the kept ones.
+
+    A sample is dropped where the observation-space occupancy grid is empty (``use_occupancy``). With ``baked``
+    each sample is also warped to canonical space by a pose's baked inverse warp (``skinning.baked_warp_lookup``)
+    and dropped where its foreground likelihood is 0 (it would add nothing); the packed samples then carry
+    canonical positions and their foreground likelihood."""
+    g = grid_funcs(dtype)
+    vec3 = g.vec3
+    lookup = baked_warp_lookup(dtype)
+    vec4 = lookup.vec4
+    JITTER, USE_OCC, BAKED = jitter, use_occupancy, baked
+
+    @wp.struct
+    class BakedWarp:
+        """A pose's baked inverse warp: the table and where it lies."""
+
+        table: wp.array3d(dtype=vec4)
+        frame: g.GridFrame
 
     @wp.func
     def ray_box(o: vec3, d: vec3, bmin: vec3, bmax: vec3):
@@ -99,60 +116,77 @@ def sampling_kernels(dtype, jitter: bool, use_occupancy: bool) -> SimpleNamespac
         n_samples: int,
         seed: int,
         occ: wp.array3d(dtype=wp.uint8),
+        warp: BakedWarp,
         counts: wp.array(dtype=wp.int32),
+        kept_t: wp.array(dtype=dtype),  # (rays * n_samples,) each sample's t, or -1 where it is dropped
+        kept_x: wp.array(dtype=vec3),  # with ``baked``: its canonical position (else empty)
+        kept_fg: wp.array(dtype=dtype),  # with ``baked``: its foreground likelihood (else empty)
+        steps: wp.array(dtype=dtype),  # (rays,) the bin length
     ):
         r = wp.tid() + r0
         o = origins[r]
         d = dirs[r]
         near, far = ray_box(o, d, bmin, bmax)
         c = int(0)
-        if far > near:
-            if wp.static(USE_OCC):
-                for k in range(n_samples):
-                    t, step = sample_t(r, k, n_samples, near, far, seed)
-                    if occupied(o + t * d, bmin, bmax, occ):
-                        c += 1
-            else:
-                c = n_samples
+        step = dtype(0.0)
+        for k in range(n_samples):
+            t = dtype(-1.0)
+            if far > near:
+                t, step = sample_t(r, k, n_samples, near, far, seed)
+                if not occupied(o + t * d, bmin, bmax, occ):
+                    t = dtype(-1.0)
+            if wp.static(BAKED):
+                if t >= dtype(0.0):
+                    x_c, fg = lookup.sample(o + t * d, warp.table, warp.frame)
+                    if fg > dtype(0.0):
+                        kept_x[r * n_samples + k] = x_c
+                        kept_fg[r * n_samples + k] = fg
+                    else:
+                        t = dtype(-1.0)
+            if t >= dtype(0.0):
+                c += 1
+            kept_t[r * n_samples + k] = t
         counts[r] = wp.int32(c)
+        steps[r] = step
 
     @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def fill_samples(
         r0: int,
         origins: wp.array(dtype=vec3),
         dirs: wp.array(dtype=vec3),
-        bmin: vec3,
-        bmax: vec3,
         n_samples: int,
-        seed: int,
-        occ: wp.array3d(dtype=wp.uint8),
+        kept_t: wp.array(dtype=dtype),
+        kept_x: wp.array(dtype=vec3),
+        kept_fg: wp.array(dtype=dtype),
+        steps: wp.array(dtype=dtype),
         offsets: wp.array(dtype=wp.int32),
         t_mid: wp.array(dtype=dtype),
         deltas: wp.array(dtype=dtype),
         ray_ids: wp.array(dtype=wp.int32),
         positions: wp.array(dtype=vec3),
+        fg: wp.array(dtype=dtype),
     ):
         r = wp.tid() + r0
-        begin = int(offsets[r])
-        end = int(offsets[r + 1])
-        if end == begin:
+        s = int(offsets[r])
+        if int(offsets[r + 1]) == s:
             return
         o = origins[r]
         d = dirs[r]
-        near, far = ray_box(o, d, bmin, bmax)
-        s = begin
+        step = steps[r]
         for k in range(n_samples):
-            if s < end:
-                t, step = sample_t(r, k, n_samples, near, far, seed)
-                x = o + t * d
-                if occupied(x, bmin, bmax, occ):
-                    t_mid[s] = t
-                    deltas[s] = step
-                    ray_ids[s] = wp.int32(r)
-                    positions[s] = x
-                    s += 1
+            t = kept_t[r * n_samples + k]
+            if t >= dtype(0.0):
+                t_mid[s] = t
+                deltas[s] = step
+                ray_ids[s] = wp.int32(r)
+                if wp.static(BAKED):
+                    positions[s] = kept_x[r * n_samples + k]
+                    fg[s] = kept_fg[r * n_samples + k]
+                else:
+                    positions[s] = o + t * d
+                s += 1
 
-    return SimpleNamespace(vec3=vec3, count=count_samples, fill=fill_samples)
+    return SimpleNamespace(vec3=vec3, vec4=vec4, grid=g, BakedWarp=BakedWarp, count=count_samples, fill=fill_samples)
 
 
 @functools.cache

@@ -206,10 +206,21 @@ def inverse_lbs_backward(dtype, n_bones: int, points: bool, weights: bool, bones
 @functools.cache
 def baked_warp_lookup(dtype):
     """Look-ups in a pose's baked inverse warp: a node-aligned (X, Y, Z) table of ``(fg * x_c, fg)`` read
-    trilinearly, ``x_c = (fg x_c)~ / max(fg~, 1e-6)``, ``fg = fg~``; points outside the table get ``fg = 0``."""
+    trilinearly, ``x_c = (fg x_c)~ / max(fg~, 1e-6)``, ``fg = fg~``; points outside the table get ``fg = 0``.
+    ``sample`` is the look-up of one point (also used by the ray sampler), ``kernel`` that of many."""
     st = skinning_types(dtype)
     g, vec3 = st.grid, st.vec3
     vec4 = wp.types.vector(4, dtype)
+
+    @wp.func
+    def sample(x: vec3, table: wp.array3d(dtype=vec4), frame: g.GridFrame):
+        ok, base, frac = g.locate(x, frame)
+        acc = vec4(dtype(0.0), dtype(0.0), dtype(0.0), dtype(0.0))
+        if ok:
+            w8 = g.corner_weights(frac)
+            for c in range(8):
+                acc += w8[c] * table[base[0] + (c & 1), base[1] + ((c >> 1) & 1), base[2] + (c >> 2)]
+        return vec3(acc[0], acc[1], acc[2]) / wp.max(acc[3], dtype(1e-6)), acc[3]
 
     @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
     def baked_lookup(
@@ -221,16 +232,11 @@ def baked_warp_lookup(dtype):
         out_fg: wp.array(dtype=dtype),
     ):
         i = wp.tid() + i0
-        ok, base, frac = g.locate(points[i], frame)
-        acc = vec4(dtype(0.0), dtype(0.0), dtype(0.0), dtype(0.0))
-        if ok:
-            w8 = g.corner_weights(frac)
-            for c in range(8):
-                acc += w8[c] * table[base[0] + (c & 1), base[1] + ((c >> 1) & 1), base[2] + (c >> 2)]
-        out_x[i] = vec3(acc[0], acc[1], acc[2]) / wp.max(acc[3], dtype(1e-6))
-        out_fg[i] = acc[3]
+        x_c, fg = sample(points[i], table, frame)
+        out_x[i] = x_c
+        out_fg[i] = fg
 
-    return SimpleNamespace(kernel=baked_lookup, vec4=vec4)
+    return SimpleNamespace(kernel=baked_lookup, sample=sample, vec4=vec4)
 
 
 @functools.cache

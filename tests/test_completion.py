@@ -41,7 +41,7 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     seen = verts[:, 2] > centre_z[parts]  # the front half of every part
     box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
     field = CanonicalField(box, 0.04)
-    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, margin=0.05)
+    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, field.body_distance(verts, normals), margin=0.05)
     assert len(pairs) == pairs.unseen > 0  # every part has seen vertices, so every unseen cell has a source
     assert sum(pairs.rule_counts.values()) == len(pairs) and pairs.rule_counts["nearest seen"] == 0
     assert torch.equal(pairs.gains, torch.ones(len(pairs)))  # no light given: nothing is relit
@@ -73,13 +73,13 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
         field.color[..., 2] = torch.where(front, -3.0, 3.0)
     before = field.color.detach().clone()
     opt = torch.optim.Adam([field.color], lr=0.2)
-    first = float(pairs.loss(field, 0).detach())
+    first = float(pairs.loss(field, 0, field.color.reshape(-1, 3)[pairs.cells]).detach())
     for step in range(60):
-        loss = pairs.loss(field, step)
+        loss = pairs.loss(field, step, field.color.reshape(-1, 3)[pairs.cells])
         opt.zero_grad()
         loss.backward()
         opt.step()
-    assert float(pairs.loss(field, 60).detach()) < 0.2 * first
+    assert float(pairs.loss(field, 60, field.color.reshape(-1, 3)[pairs.cells]).detach()) < 0.2 * first
     changed = (field.color.detach() - before).abs().sum(-1).reshape(-1) > 0
     assert changed.any() and not changed[~torch.isin(torch.arange(changed.numel()), pairs.cells)].any()
     moved = torch.sigmoid(field.color.detach().reshape(-1, 3)[pairs.cells])
@@ -124,7 +124,9 @@ def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):
     field = CanonicalField(box, 0.04)
     with torch.no_grad():
         field.color.fill_(1.0)  # everything sigmoid(1) = 0.73 grey
-    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, 0.05, light(normals))
+    pairs = MirrorCompletion.build(
+        field, verts, normals, parts, seen, field.body_distance(verts, normals), 0.05, light(normals)
+    )
     target = pairs.targets(field)
     cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()[pairs.cells.numpy()]
     _, owner = cKDTree(verts).query(cells)
@@ -148,7 +150,9 @@ def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
     field = CanonicalField(box, 0.04)
     with torch.no_grad():
         field.color.copy_(torch.randn(field.color.shape, generator=torch.Generator().manual_seed(0)))
-    pairs = MirrorCompletion.build(field, verts, normals, parts, verts[:, 2] > centre_z[parts], margin=0.05)
+    pairs = MirrorCompletion.build(
+        field, verts, normals, parts, verts[:, 2] > centre_z[parts], field.body_distance(verts, normals), margin=0.05
+    )
     step = BLUR_VOXELS * field.voxel_size
     offsets = [torch.zeros(3)] + [sign * step * torch.eye(3)[k] for k in range(3) for sign in (1.0, -1.0)]
     grid = field.color.detach().permute(3, 0, 1, 2)

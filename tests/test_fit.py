@@ -22,6 +22,7 @@ from elicit_diffrender.fit.views import crop_image
 from elicit_diffrender.io import read_tensors, write_tensors
 from elicit_diffrender.subject import SubjectError, load_subject
 from elicit_diffrender.synth import synthesize
+from elicit_diffrender.volume import BakedWarp
 
 TINY = [
     "init_steps=30",
@@ -110,7 +111,7 @@ def test_a_baked_warp_renders_like_the_exact_one(tiny_subject, tiny_avatar):
     origins, dirs = cam.rays()
     with torch.no_grad():
         a = avatar.render_rays(origins, dirs, bones, 32, torch.zeros(3))
-        b = avatar.render_rays(origins, dirs, bones, 32, torch.zeros(3), baked=(table, box))
+        b = avatar.render_rays(origins, dirs, bones, 32, torch.zeros(3), warp=BakedWarp(table, box))
     assert a["alpha"].mean() > 0.04
     assert (a["alpha"] - b["alpha"]).abs().mean() < 0.01 and (a["rgb"] - b["rgb"]).abs().mean() < 0.01
     # The fit's renderer bakes fixed warps only: not while the motion weights learn, not the refined input pose.

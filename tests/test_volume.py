@@ -8,7 +8,8 @@ from devices import on_device
 
 from elicit_diffrender.device import to_warp
 from elicit_diffrender.reference import composite_reference
-from elicit_diffrender.volume import RaySamples
+from elicit_diffrender.skinning import lookup_baked_warp
+from elicit_diffrender.volume import BakedWarp, RaySamples
 from elicit_diffrender.volume import composite as _composite
 from elicit_diffrender.volume import sample_rays as _sample_rays
 
@@ -246,6 +247,27 @@ def test_occupancy_skipping_keeps_the_image():
     a = composite(full, density, color, BOX, outputs=("rgb", "alpha"))
     b = composite(skip, density, color, BOX, outputs=("rgb", "alpha"))
     torch.testing.assert_close(a["rgb"], b["rgb"], atol=1e-9, rtol=0)
+
+
+def test_baked_warp_sampling_matches_a_separate_look_up():
+    """Sampling with a pose's baked warp gives the look-up of every plain sample, less those with fg = 0."""
+    o, d = camera_rays(200)
+    gen = torch.Generator().manual_seed(5)
+    table = torch.rand(9, 10, 8, 4, generator=gen, dtype=torch.float64)
+    table[..., 3] = torch.where(table[..., 3] > 0.4, table[..., 3], torch.zeros(()))  # empty room: fg = 0
+    table_box = torch.tensor([[-0.9, -1.0, -0.7], [0.8, 1.0, 0.8]], dtype=torch.float64)  # misses part of BOX
+    occ = (torch.rand(6, 6, 6, generator=gen) > 0.3).to(torch.uint8)
+    plain = sample_rays(o, d, BOX.double(), 32, jitter=True, seed=3, occupancy=occ)
+    warped = sample_rays(o, d, BOX.double(), 32, jitter=True, seed=3, occupancy=occ, warp=BakedWarp(table, table_box))
+    x_c, fg = on_device(lookup_baked_warp)(plain.positions, table, table_box)
+    kept = fg > 0
+    assert 0.2 * plain.n_samples < warped.n_samples == int(kept.sum()) < 0.9 * plain.n_samples
+    torch.testing.assert_close(warped.positions, x_c[kept], atol=1e-12, rtol=0)
+    torch.testing.assert_close(warped.fg, fg[kept], atol=1e-12, rtol=0)
+    torch.testing.assert_close(warped.t_mid, plain.t_mid[kept])
+    assert torch.equal(warped.ray_ids, plain.ray_ids[kept]) and plain.fg is None
+    counts = torch.bincount(plain.ray_ids[kept].long(), minlength=200)
+    assert torch.equal(warped.offsets[1:] - warped.offsets[:-1], counts.to(torch.int32))
 
 
 def test_silhouette_call_needs_no_colour():

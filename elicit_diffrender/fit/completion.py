@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from ..body import PART_NAMES
 from ..cameras import Camera
-from ..field import CanonicalField, grid_points, signed_distance
+from ..field import CanonicalField, grid_points, nearest
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
@@ -84,20 +84,22 @@ class MirrorCompletion:
         normals: np.ndarray,
         vertex_parts: np.ndarray,
         seen: np.ndarray,
+        sdf: np.ndarray,
         margin: float,
         light: np.ndarray | None = None,
         garment: np.ndarray | None = None,
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
-        ``vertex_parts``) and which of its vertices the input camera sees; cells up to ``margin`` outside
-        the body count, and the ``garment`` cells (flat bool: a garment's hull) however far out. ``light``
-        (V,) is the photo's light ``S`` at every vertex (input pose); without it the gains are 1."""
+        ``vertex_parts``, and ``sdf``: ``field.body_distance`` of it) and which of its vertices the input camera
+        sees; cells up to ``margin`` outside the body count, and the ``garment`` cells (flat bool: a garment's
+        hull) however far out. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without
+        it the gains are 1."""
         pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
-        sdf = signed_distance(pts, canonical, normals)
+        sdf = sdf.reshape(-1)
         room = sdf < margin if garment is None else (sdf < margin) | garment
         near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & room)[0]
         tree = cKDTree(canonical)
-        _, idx = tree.query(pts[near])
+        _, idx = nearest(tree, pts[near])
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[near[hidden]], idx[hidden]
         part = vertex_parts[owner]
@@ -119,7 +121,7 @@ class MirrorCompletion:
             ("both", both, mirrored_ok),
         ):
             free = np.nonzero(np.isnan(source[:, 0]) & allowed)[0]
-            _, cand = tree.query(candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
+            _, cand = nearest(tree, candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
             ok = seen[cand]
             source[free[ok]] = candidate[free[ok]]
             source_vertex[free[ok]] = cand[ok]
@@ -143,7 +145,7 @@ class MirrorCompletion:
                 if pool is None or not pool.any():
                     continue
                 rows, pool = free[part[free] == k], np.nonzero(pool)[0]
-                _, j = cKDTree(canonical[pool]).query(p[rows])
+                _, j = nearest(cKDTree(canonical[pool]), p[rows])
                 source[rows], source_vertex[rows] = canonical[pool[j]], pool[j]
                 counts[name] += int(rows.size)
         has = ~np.isnan(source[:, 0])
@@ -204,11 +206,12 @@ class MirrorCompletion:
     def load_state(self, state: dict) -> None:
         self._target, self._key = (state["target"], int(state["key"])) if state else (None, -1)
 
-    def loss(self, field: CanonicalField, step: int) -> torch.Tensor:
-        """The term over every unseen cell with a source; targets are recomputed every ``REFRESH`` steps."""
+    def loss(self, field: CanonicalField, step: int, cell_logits: torch.Tensor) -> torch.Tensor:
+        """The term over every unseen cell with a source, whose colour logits ``cell_logits`` (N, 3) are
+        ``field.color``'s rows :attr:`cells`; targets are recomputed every ``REFRESH`` steps."""
         if len(self) == 0:
             return torch.zeros((), device=field.color.device)
         if self._target is None or step // REFRESH != self._key:
             self._target, self._key = self.targets(field), step // REFRESH
-        color = torch.sigmoid(field.color.reshape(-1, 3)[self.cells])
+        color = torch.sigmoid(cell_logits)
         return ((color - self._target) ** 2).sum(-1).mean()

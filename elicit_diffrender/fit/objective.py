@@ -22,10 +22,11 @@ from ..body import BodyModel
 from ..body.template import vertex_normals
 from ..config import FitConfig
 from ..encoders import FALLBACK_NAME, EncoderError, load_encoder
-from ..field import CanonicalField, grid_points, signed_distance
+from ..field import CanonicalField
 from ..losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..sampling import NovelView, crop_window, part_pixels, plan_novel_view
 from .completion import MirrorCompletion
+from .regions import GradRegions
 from .render import PoseRenderer
 from .streams import RandomStreams
 from .views import FitViews, crop_image, min_part_pixels, random_patch
@@ -49,14 +50,12 @@ log = logging.getLogger("elicit.fit")
 
 
 def outside_body(
-    body: BodyModel, field: CanonicalField, device: torch.device, garment: np.ndarray | None
+    body_sdf: np.ndarray, field: CanonicalField, device: torch.device, garment: np.ndarray | None
 ) -> torch.Tensor:
-    """1 for grid cells more than one cell outside the canonical body (where density is clothing), except the
-    ``garment`` cells (flat bool: the hull of a garment that bridges the legs, whose depth is a prior's)."""
-    canon = body.pose(body.canonical_pose())
-    pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
-    sdf = signed_distance(pts, canon.vertices, vertex_normals(canon.vertices, body.faces))
-    outside = sdf > field.voxel_size
+    """1 for grid cells more than one cell outside the canonical body (``body_sdf``: ``field.body_distance``;
+    where density is clothing), except the ``garment`` cells (flat bool: the hull of a garment that bridges
+    the legs, whose depth is a prior's)."""
+    outside = body_sdf.reshape(-1) > field.voxel_size
     if garment is not None:
         outside &= ~garment
     return torch.as_tensor(outside.reshape(field.shape), dtype=torch.float32, device=device)
@@ -70,9 +69,11 @@ class Objective:
         renderer: PoseRenderer,
         streams: RandomStreams,
         body: BodyModel,
+        body_sdf: np.ndarray,
         garment: np.ndarray | None = None,
     ) -> None:
-        """``garment``: flat bool over the grid's cells, the hull of a garment that bridges the legs (:mod:`.room`)."""
+        """``body_sdf``: the canonical body's signed distance at the grid's nodes (``field.body_distance``);
+        ``garment``: flat bool over the grid's cells, the hull of a garment that bridges the legs (:mod:`.room`)."""
         self.cfg, self.views, self.renderer, self.streams = cfg, views, renderer, streams
         self.device = renderer.avatar.device
         self.field = renderer.avatar.field
@@ -86,21 +87,24 @@ class Objective:
             if cfg.text_prompt and self.on("text"):
                 raise EncoderError(f"text_prompt needs CLIP weights; the semantic prior here is {FALLBACK_NAME}")
             if self.on("semantic") and self.on("mirror"):
-                self.completion = self._mirror_completion(body, cfg.box_margin, garment)
+                self.completion = self._mirror_completion(body, body_sdf, cfg.box_margin, garment)
         self.text_embedding = None
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
         self.perceptual = Perceptual(cfg.perceptual, self.device)
-        self.outside_body = outside_body(body, self.field, self.device, garment) if self.on("sparsity") else None
+        self.outside_body = outside_body(body_sdf, self.field, self.device, garment) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
+        self.regions = GradRegions()  # the grid regions the step's regularisers read
 
-    def _mirror_completion(self, body: BodyModel, margin: float, garment: np.ndarray | None) -> MirrorCompletion:
+    def _mirror_completion(
+        self, body: BodyModel, body_sdf: np.ndarray, margin: float, garment: np.ndarray | None
+    ) -> MirrorCompletion:
         view = self.views.input
         canon = body.pose(body.canonical_pose())
         normals = vertex_normals(canon.vertices, body.faces)
         light = view.shading(view.normals)
         pairs = MirrorCompletion.build(
-            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, margin, light, garment
+            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, body_sdf, margin, light, garment
         )
         rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
         log.info(
@@ -229,13 +233,24 @@ class Objective:
         return image, crop_image(self._tensor(mask)[None], window, size)
 
     def regularisers(self, stage: int, step: int) -> Terms:
-        """Grid smoothness (both stages) and sparsity outside the body (stage 2), on one random block."""
-        block = self.field.random_block(generator=self.streams.blocks)
+        """Grid smoothness (both stages) and sparsity outside the body (stage 2), on one random block, and the
+        mirror completion's unseen cells (stage 2). They read the grids through :attr:`regions`, whose
+        gradients :meth:`backward` adds in."""
+        f = self.field
+        block = f.random_block(generator=self.streams.blocks)
+        self.regions = GradRegions()
         terms: Terms = {}
+        density = self.regions.block(f.density, block)
         if self.on("tv"):
-            terms["tv"] = self.field.tv_loss(block)
+            terms["tv"] = f.tv_loss(density, self.regions.block(f.color, block))
         if stage == 2 and self.on("sparsity"):
-            terms["sparsity"] = self.field.sparsity_loss(block, self.outside_body)
+            terms["sparsity"] = f.sparsity_loss(density, self.outside_body[block])
         if stage == 2 and self.completion is not None:
-            terms["mirror"] = self.completion.loss(self.field, step)
+            cells = self.regions.rows(f.color, self.completion.cells)
+            terms["mirror"] = self.completion.loss(f, step, cells)
         return terms
+
+    def backward(self, loss: torch.Tensor) -> None:
+        """Gradients of the step's ``loss`` (:meth:`total`) in every parameter's ``.grad``."""
+        loss.backward()
+        self.regions.add_gradients()

@@ -8,6 +8,7 @@ import torch
 from ..avatar import Avatar
 from ..cameras import Camera
 from ..subject import Subject
+from ..volume import BakedWarp
 from .streams import RandomStreams
 
 SPACE_REFRESH = 50  # steps between observation-space updates while the warp itself is learned
@@ -19,9 +20,8 @@ class PoseRenderer:
     The observation-space box and occupancy of a pose are cached; when the motion weights (or the
     refined input pose) are being learned they are rebuilt every ``SPACE_REFRESH`` steps. The warp of a
     pose whose warp is fixed is baked into a look-up table of ``warp_cell`` metres once (0: every sample
-    takes the exact per-bone warp). Training
-    renders jitter their samples with seeds from ``streams.jitter``; renders without gradients draw
-    nothing from any stream.
+    takes the exact per-bone warp), which the ray sampler applies. Training renders jitter their samples with
+    seeds from ``streams.jitter``; renders without gradients draw nothing from any stream.
     """
 
     def __init__(
@@ -64,14 +64,14 @@ class PoseRenderer:
             self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach())
         return self._spaces[pose]
 
-    def baked(self, pose: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The pose's warp as a look-up table and its box, while the warp is fixed and ``warp_cell`` > 0."""
+    def baked(self, pose: int) -> BakedWarp | None:
+        """The pose's warp as a look-up table, while the warp is fixed and ``warp_cell`` > 0."""
         if self.warp_cell <= 0 or self._moving(pose):
             return None
         if pose not in self._baked:
             box = self.space(pose)[0]
             self._baked[pose] = (self.avatar.bake_warp(self.bones(pose).detach(), box, self.warp_cell), box)
-        return self._baked[pose]
+        return BakedWarp(*self._baked[pose])
 
     def render(
         self, camera: Camera, pose: int, background: torch.Tensor, outputs=("rgb", "alpha"), grad: bool = True
@@ -90,7 +90,7 @@ class PoseRenderer:
                 outputs=outputs,
                 t_thresh=self.t_thresh,
                 space=self.space(pose),
-                baked=self.baked(pose),
+                warp=self.baked(pose),
             )
         h, w = camera.height, camera.width
         res = {"alpha": out["alpha"].reshape(1, h, w)}
@@ -99,5 +99,6 @@ class PoseRenderer:
         return res
 
     def image(self, camera: Camera, pose: int) -> np.ndarray:
-        """A full (H, W, 3) image on black, without gradients (previews)."""
-        return self.avatar.render_image(camera, self.bones(pose), self.samples_per_ray)["rgb"]
+        """A full (H, W, 3) image on black, without gradients (previews), from the cached space and baked warp."""
+        black = torch.zeros(3, device=self.avatar.device)
+        return self.render(camera, pose, black, grad=False)["rgb"][0].permute(1, 2, 0).cpu().numpy()

@@ -103,13 +103,21 @@ class Trainer:
         self.views = FitViews.build(subject, cfg, self.device)
         poses = list(self.views.prior.rows)
         self.renderer = PoseRenderer(
-            self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams, cfg.warp_cell
+            self.avatar,
+            subject,
+            poses,
+            cfg.samples_per_ray,
+            cfg.t_thresh,
+            self.streams,
+            cfg.warp_cell,
         )
         self.garment = None  # flat bool over the grid's cells: the hull of a garment that bridges the legs
         if self.room.hull is not None:
             f = self.avatar.field
             self.garment = self.room.hull(grid_points(f.box.double().cpu(), f.shape).reshape(-1, 3).numpy())
-        self.objective = Objective(cfg, self.views, self.renderer, self.streams, body, self.garment)
+        self.objective = Objective(
+            cfg, self.views, self.renderer, self.streams, body, self.avatar.body_sdf, self.garment
+        )
         self.guard = EmptyRenderGuard(self.avatar, self.renderer, self.views.input)
         self.make_optimizer()
         self.stats.seconds["prepare"] = time.perf_counter() - t0
@@ -251,7 +259,7 @@ class Trainer:
             if not torch.isfinite(loss):
                 self.check()
                 continue
-            loss.backward()
+            self.objective.backward(loss)
             self.opt.step()
             self.step += 1
             bar.update(1)
