@@ -148,16 +148,6 @@ class CanonicalField(nn.Module):
         start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
         return tuple(slice(s, s + block) for s in start)
 
-    @staticmethod
-    def tv_loss(density: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
-        """Total variation: mean squared neighbour difference of a block of the density (X, Y, Z) and colour
-        (X, Y, Z, 3) grids."""
-        loss = torch.zeros((), device=density.device)
-        for grid in (density, color):
-            for axis in range(3):
-                loss = loss + torch.diff(grid, dim=axis).pow(2).mean()
-        return loss
-
     def sparsity_loss(self, density: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
         """Cauchy sparsity ``log(1 + 2 sigma^2)`` of a block of the raw density, counted where ``where`` (the same
         block of a mask) is 1."""

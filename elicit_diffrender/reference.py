@@ -92,3 +92,12 @@ def forward_lbs_reference(
     mats = canonical_to_posed[bone_idx.long()]  # (V, K, 4, 4)
     posed = torch.einsum("vkij,vj->vki", mats[..., :3, :3], verts) + mats[..., :3, 3]
     return (bone_w[..., None] * posed).sum(1)
+
+
+def total_variation_reference(density: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
+    """Same output as :func:`elicit_diffrender.total_variation.total_variation`."""
+    loss = torch.zeros((), dtype=density.dtype, device=density.device)
+    for grid in (density, color):
+        for axis in range(3):
+            loss = loss + torch.diff(grid, dim=axis).pow(2).mean()
+    return loss

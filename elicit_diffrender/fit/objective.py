@@ -25,6 +25,7 @@ from ..encoders import FALLBACK_NAME, EncoderError, load_encoder
 from ..field import CanonicalField
 from ..losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..sampling import NovelView, crop_window, part_pixels, plan_novel_view
+from ..total_variation import total_variation
 from .completion import MirrorCompletion
 from .regions import GradRegions
 from .render import PoseRenderer
@@ -242,7 +243,7 @@ class Objective:
         terms: Terms = {}
         density = self.regions.block(f.density, block)
         if self.on("tv"):
-            terms["tv"] = f.tv_loss(density, self.regions.block(f.color, block))
+            terms["tv"] = total_variation(density, self.regions.block(f.color, block))
         if stage == 2 and self.on("sparsity"):
             terms["sparsity"] = f.sparsity_loss(density, self.outside_body[block])
         if stage == 2 and self.completion is not None:
