@@ -1,11 +1,11 @@
 #!/usr/bin/env python
 """Where a ``cpu-fast`` fit spends its time: a short fit of the demo subject under cProfile.
 
-Wall time is split into the Warp kernels (inverse-LBS and ray-marching forward and backward),
-Mitsuba (the body renders, silhouettes and labels), ray sampling, the losses, the semantic prior
-(encoder or mirror completion), the optimiser, checkpoint files and everything else (Python glue,
-torch operators outside those, and waits). Each part is the cumulative time of the functions listed
-in ``PARTS``, which never call one another. The set-up (views, body renders, the semantic prior's
+Wall time is split into the Warp kernels (inverse-LBS, ray sampling with the baked warp, ray-marching and
+total variation, forward and backward), Mitsuba (the body renders, silhouettes and labels), the losses, the
+sparsity term, the grid regions the regularisers read, the semantic prior (encoder or mirror completion),
+the optimiser, checkpoint files and everything else (Python glue, torch operators outside those, and waits).
+Each part is the cumulative time of the functions listed in ``PARTS``, which never call one another. The set-up (views, body renders, the semantic prior's
 targets) and the training steps are profiled apart. Writes ``docs/benchmarks/profile.{json,md}``.
 
     python scripts/profile_fit.py [--init-steps 60] [--steps 240]
@@ -32,7 +32,13 @@ PARTS: dict[str, list[tuple[str, str]]] = {
     "inverse LBS backward (Warp)": [("elicit_diffrender/skinning.py", "backward")],
     "ray marching forward (Warp)": [("elicit_diffrender/volume.py", "forward")],
     "ray marching backward (Warp)": [("elicit_diffrender/volume.py", "backward")],
-    "ray sampling and occupancy": [("elicit_diffrender/volume.py", "sample_rays")],
+    "ray sampling, occupancy and baked warp (Warp)": [("elicit_diffrender/volume.py", "sample_rays")],
+    "total variation (Warp)": [
+        ("elicit_diffrender/total_variation.py", "forward"),
+        ("elicit_diffrender/total_variation.py", "backward"),
+    ],
+    "sparsity": [("elicit_diffrender/field.py", "sparsity_loss")],
+    "grid regions (leaf copies, gradient adds)": [("elicit_diffrender/fit/regions.py", "")],
     "Mitsuba body renders": [
         ("elicit_diffrender/mesh_render.py", "render"),
         ("elicit_diffrender/mesh_render.py", "__call__"),
