@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .device import grid_frame, launch, launch_parts, to_warp, warp_scalar
+from .device import grid_frame, launch, launch_parts, scratch_zeros, to_warp, warp_scalar
 from .kernels.skinning import (
     baked_warp_lookup,
     forward_lbs_backward,
@@ -77,11 +77,13 @@ class _InverseLBS(torch.autograd.Function):
         # Per-thread buffers for everything several points add into.
         bufs = [
             (
-                torch.zeros_like(weights) if need_weights else tiny4,
+                (torch.zeros_like(weights) if part == 0 else scratch_zeros(f"weights{part}", weights))
+                if need_weights
+                else tiny4,
                 rot.new_zeros((copies * rot.shape[0], 3, 3)),
                 trans.new_zeros((copies * trans.shape[0], 3)),
             )
-            for _ in range(parts)
+            for part in range(parts)
         ]
         st, warp = _warp_arguments(rot, trans, weights, ctx.box, ctx.eps, ctx.gate)
         common = [

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .device import grid_frame, launch, launch_parts, to_warp, warp_scalar
+from .device import grid_frame, launch, launch_parts, scratch_zeros, to_warp, warp_scalar
 from .kernels.raymarch import (
     ACT_RELU,
     ACT_SOFTPLUS,
@@ -198,8 +198,11 @@ class _Composite(torch.autograd.Function):
         grad_pos = torch.zeros_like(positions) if need_pos else _empty(0, 3, like=positions)
         grad_fg = torch.zeros_like(fg_t)
         n_parts = launch_parts(n_rays, device)
-        if need_grid:  # one gradient buffer per thread, summed afterwards
-            grids = [(torch.zeros_like(density), torch.zeros_like(color_t)) for _ in range(n_parts)]
+        if need_grid:  # one gradient buffer per thread, summed into the first afterwards
+            grids = [(torch.zeros_like(density), torch.zeros_like(color_t))]
+            grids += [
+                (scratch_zeros(f"density{p}", density), scratch_zeros(f"color{p}", color_t)) for p in range(1, n_parts)
+            ]
         else:
             grids = [(_empty(1, 1, 1, like=positions), _empty(1, 1, 1, 3, like=positions))] * n_parts
         samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)

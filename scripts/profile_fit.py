@@ -5,8 +5,9 @@ Wall time is split into the Warp kernels (inverse-LBS, ray sampling with the bak
 total variation, forward and backward), Mitsuba (the body renders, silhouettes and labels), the losses, the
 sparsity term, the grid regions the regularisers read, the semantic prior (encoder or mirror completion),
 the optimiser, checkpoint files and everything else (Python glue, torch operators outside those, and waits).
-Each part is the cumulative time of the functions listed in ``PARTS``, which never call one another. The set-up (views, body renders, the semantic prior's
-targets) and the training steps are profiled apart. Writes ``docs/benchmarks/profile.{json,md}``.
+Each part is the cumulative time of the functions listed in ``PARTS``, which never call one another. The
+set-up (views, body renders, the semantic prior's targets) and the training steps are profiled apart.
+Writes ``docs/benchmarks/profile.{json,md}``.
 
     python scripts/profile_fit.py [--init-steps 60] [--steps 240]
 """
@@ -116,7 +117,7 @@ def main() -> int:
                 "share %": round(100 * v / wall, 1),
             }
             for k, v in sorted(seconds.items(), key=lambda kv: -kv[1])
-            if v > 0
+            if round(v, 2) > 0
         ]
         data[phase] = {"wall_s": round(wall, 2), "parts": rows}
         cols = [("part", "part"), ("seconds", "seconds"), ("share %", "share %")]

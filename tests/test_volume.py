@@ -1,12 +1,14 @@
 """Ray marcher: agreement with the torch reference, hand-written adjoint, and hard cases."""
 
 import math
+import os
+import time
 
 import pytest
 import torch
 from devices import on_device
 
-from elicit_diffrender.device import to_warp
+from elicit_diffrender.device import split_launch, to_warp
 from elicit_diffrender.reference import composite_reference
 from elicit_diffrender.skinning import lookup_baked_warp
 from elicit_diffrender.volume import BakedWarp, RaySamples
@@ -315,3 +317,33 @@ def test_bad_arguments_name_the_problem():
     with pytest.raises(ValueError, match="n_samples"):
         sample_rays(o, d, BOX.double(), 0)
     assert math.isfinite(1.0)
+
+
+def test_split_launch_runs_every_piece_and_raises_their_errors():
+    """CPU launches run in pieces on a pool of threads: every piece once, an error re-raised in the caller, and a
+    forked child (whose copy of the pool has no threads) starts its own."""
+    seen = []
+    split_launch(1000, 2, lambda b, e, p: seen.append((b, e, p)))
+    assert sorted(seen) == [(0, 500, 0), (500, 1000, 1)]
+
+    def fail_second(b, e, p):
+        if p == 1:
+            raise RuntimeError("piece 1 failed")
+
+    with pytest.raises(RuntimeError, match="piece 1 failed"):
+        split_launch(10, 2, fail_second)
+    pid = os.fork()
+    if pid == 0:  # the child: two pieces again, then report by exit code
+        pieces = []
+        split_launch(10, 2, lambda b, e, p: pieces.append(p))
+        os._exit(0 if sorted(pieces) == [0, 1] else 3)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(pid, 9)
+        pytest.fail("split_launch hung in a forked child")
+    assert os.waitstatus_to_exitcode(status) == 0

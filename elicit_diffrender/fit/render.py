@@ -41,7 +41,7 @@ class PoseRenderer:
         # The poses the avatar itself corrects when it renders them (``Avatar.set_refined_pose``)
         self._refined = {p for p in poses if avatar.is_refined_pose(*subject.motion.frame(p))}
         self._spaces: dict[int, tuple] = {}
-        self._baked: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._baked: dict[int, BakedWarp] = {}
         self._space_key = -1
 
     def bones(self, pose: int) -> torch.Tensor:
@@ -70,8 +70,8 @@ class PoseRenderer:
             return None
         if pose not in self._baked:
             box = self.space(pose)[0]
-            self._baked[pose] = (self.avatar.bake_warp(self.bones(pose).detach(), box, self.warp_cell), box)
-        return BakedWarp(*self._baked[pose])
+            self._baked[pose] = BakedWarp(self.avatar.bake_warp(self.bones(pose).detach(), box, self.warp_cell), box)
+        return self._baked[pose]
 
     def render(
         self, camera: Camera, pose: int, background: torch.Tensor, outputs=("rgb", "alpha"), grad: bool = True
