@@ -254,10 +254,10 @@ class Avatar(nn.Module):
         """The inverse warp of a pose as a look-up table: (X, Y, Z, 4) summed bone weight ``fg`` times canonical
         position, and ``fg``, at the nodes of a lattice ``cell`` metres apart over the observation-space ``box``.
 
-        Trilinear look-ups in it (:meth:`warp_points`) replace the per-bone warp of every sample while the
-        motion weights and the pose are fixed. The position is weighted by ``fg`` so that nodes outside every
-        bone's reach (``fg = 0``, position meaningless) do not pull a look-up beside them; between nodes where
-        the warp jumps (a gate between two limbs) a look-up blends the two sides.
+        Trilinear look-ups in it (:class:`BakedWarp` in :meth:`render_rays`, or :meth:`warp_points`) replace the
+        per-bone warp of every sample while the motion weights and the pose are fixed. The position is weighted by
+        ``fg`` so that nodes outside every bone's reach (``fg = 0``, position meaningless) do not pull a look-up
+        beside them; between nodes where the warp jumps (a gate between two limbs) a look-up blends the two sides.
         """
         shape = grid_shape(box.cpu(), cell)
         nodes = grid_points(box.double().cpu(), shape).reshape(-1, 3).to(torch.float32).to(self.device)

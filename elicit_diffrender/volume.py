@@ -1,8 +1,9 @@
 """Functional volume rendering over an explicit grid (nerfacc-style): sample rays, then composite.
 
 ``sample_rays`` places stratified samples inside a box, optionally skipping cells an occupancy grid
-marks empty, and returns them packed per ray. ``composite`` reads density and colour from a grid at
-any per-sample positions (for example samples warped to canonical space) and alpha-composites them.
+marks empty (and warping them to canonical space by a pose's baked warp), and returns them packed per
+ray. ``composite`` reads density and colour from a grid at any per-sample positions (for example samples
+warped to canonical space) and alpha-composites them.
 Both run Warp kernels on torch memory through DLPack; ``composite`` is differentiable with respect
 to the grids, the positions and the foreground likelihood.
 """
