@@ -276,11 +276,14 @@ class Avatar(nn.Module):
         )  # fmt: skip
 
     def warp_points(
-        self, points: torch.Tensor, bones: torch.Tensor, baked: tuple[torch.Tensor, torch.Tensor] | None = None
+        self, points: torch.Tensor, bones: torch.Tensor, baked: BakedWarp | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Observation-space points (N, 3) -> canonical points (N, 3) and foreground likelihood (N,): the exact
-        inverse warp, or trilinear look-ups in ``baked`` = (table, box) from :meth:`bake_warp`."""
-        x_c, fg = lookup_baked_warp(points, *baked) if baked is not None else self._exact_warp(points, bones)
+        inverse warp, or trilinear look-ups in ``baked`` (a table from :meth:`bake_warp` and its box)."""
+        if baked is not None:
+            x_c, fg = lookup_baked_warp(points, baked.table, baked.box)
+        else:
+            x_c, fg = self._exact_warp(points, bones)
         return x_c, self.foreground(fg)
 
     def render_rays(

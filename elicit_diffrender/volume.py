@@ -86,8 +86,10 @@ def sample_rays(
     baked = warp is not None
     k = sampling_kernels(warp_scalar(dtype), bool(jitter), occupancy is not None, baked)
     n_rays = origins.shape[0]
-    tiny = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
-    occ_t = tiny if occupancy is None else occupancy.to(device=device, dtype=torch.uint8).contiguous()
+    if occupancy is None:
+        occ_t = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
+    else:
+        occ_t = occupancy.to(device=device, dtype=torch.uint8).contiguous()
     rays = [
         to_warp(origins.contiguous(), dtype=k.vec3),
         to_warp(dirs.contiguous(), dtype=k.vec3),

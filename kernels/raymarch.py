@@ -131,13 +131,15 @@ def sampling_kernels(dtype, jitter: bool, use_occupancy: bool, baked: bool = Fal
         step = dtype(0.0)
         for k in range(n_samples):
             t = dtype(-1.0)
+            x = o
             if far > near:
                 t, step = sample_t(r, k, n_samples, near, far, seed)
-                if not occupied(o + t * d, bmin, bmax, occ):
+                x = o + t * d
+                if not occupied(x, bmin, bmax, occ):
                     t = dtype(-1.0)
             if wp.static(BAKED):
                 if t >= dtype(0.0):
-                    x_c, fg = lookup.sample(o + t * d, warp.table, warp.frame)
+                    x_c, fg = lookup.sample(x, warp.table, warp.frame)
                     if fg > dtype(0.0):
                         kept_x[r * n_samples + k] = x_c
                         kept_fg[r * n_samples + k] = fg

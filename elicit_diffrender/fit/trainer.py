@@ -103,13 +103,7 @@ class Trainer:
         self.views = FitViews.build(subject, cfg, self.device)
         poses = list(self.views.prior.rows)
         self.renderer = PoseRenderer(
-            self.avatar,
-            subject,
-            poses,
-            cfg.samples_per_ray,
-            cfg.t_thresh,
-            self.streams,
-            cfg.warp_cell,
+            self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams, cfg.warp_cell
         )
         self.garment = None  # flat bool over the grid's cells: the hull of a garment that bridges the legs
         if self.room.hull is not None:
