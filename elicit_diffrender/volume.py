@@ -18,9 +18,12 @@ from .device import grid_frame, launch, launch_parts, scratch_zeros, to_warp, wa
 from .kernels.raymarch import (
     ACT_RELU,
     ACT_SOFTPLUS,
+    ORDER_CELLS,
+    ORDER_MIN_RAYS,
     composite_backward,
     composite_forward,
     composite_structs,
+    ray_order_keys,
     sampling_kernels,
 )
 
@@ -130,9 +133,25 @@ def _empty(*shape: int, like: torch.Tensor) -> torch.Tensor:
     return torch.zeros(shape, dtype=like.dtype, device=like.device)
 
 
-def _ray_arguments(st, positions, fg, density, color, offsets, t_mid, deltas, box):
+def coherent_ray_order(offsets: torch.Tensor, positions: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """(R,) int32: the rays ordered so that neighbours read the same part of a grid over ``box``, by the Morton
+    code of the cell holding each ray's middle sample (``kernels.raymarch.ray_order_keys``), rays in the same
+    cell in their given order, rays without samples last. Fewer than ``ORDER_MIN_RAYS`` rays keep their order."""
+    n_rays = offsets.shape[0] - 1
+    if n_rays < ORDER_MIN_RAYS:
+        return torch.arange(n_rays, dtype=torch.int32, device=offsets.device)
+    keys = torch.empty(n_rays, dtype=torch.int32, device=offsets.device)
+    st = composite_structs(warp_scalar(positions.dtype))
+    frame = grid_frame(st.grid, box, (ORDER_CELLS + 1,) * 3)
+    args = [to_warp(offsets), to_warp(positions, dtype=st.vec3), frame, to_warp(keys)]
+    launch(ray_order_keys(warp_scalar(positions.dtype)), n_rays, offsets.device, args)
+    return torch.argsort(keys, stable=True).to(torch.int32)
+
+
+def _ray_arguments(st, order, positions, fg, density, color, offsets, t_mid, deltas, box):
     """The two structs both compositing passes read: the packed samples and the radiance grid."""
     samples = st.RaySamples()
+    samples.order = to_warp(order)
     samples.offsets = to_warp(offsets)
     samples.positions = to_warp(positions, dtype=st.vec3)
     samples.t_mid = to_warp(t_mid)
@@ -177,12 +196,25 @@ class _Composite(torch.autograd.Function):
         saved_color = torch.empty(n_saved if need_rgb else 0, 3, dtype=dtype, device=device)
         n_used = torch.zeros(n_rays if save else 0, dtype=torch.int32, device=device)
         saved = _saved(st, trans, raw, extinction, saved_color, n_used)
-        samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, box)
+        order = coherent_ray_order(offsets, positions, box)
+        samples, grid = _ray_arguments(st, order, positions, fg_t, density, color_t, offsets, t_mid, deltas, box)
         kernel = composite_forward(warp_scalar(dtype), act, has_fg, need_rgb, need_depth, save)
         args = [samples, grid, t_thresh, _ray_outputs(st, rgb, acc, depth), saved]
         launch(kernel, n_rays, device, args)
         ctx.save_for_backward(
-            positions, fg_t, density, color_t, offsets, t_mid, deltas, trans, raw, extinction, saved_color, n_used
+            order,
+            positions,
+            fg_t,
+            density,
+            color_t,
+            offsets,
+            t_mid,
+            deltas,
+            trans,
+            raw,
+            extinction,
+            saved_color,
+            n_used,
         )
         ctx.box, ctx.act, ctx.has_fg, ctx.need_rgb, ctx.need_depth = box, act, has_fg, need_rgb, need_depth
         ctx.mark_non_differentiable(*([] if need_rgb else [rgb]), *([] if need_depth else [depth]))
@@ -190,7 +222,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_acc, g_depth):
-        positions, fg_t, density, color_t, offsets, t_mid, deltas, *kept = ctx.saved_tensors
+        order, positions, fg_t, density, color_t, offsets, t_mid, deltas, *kept = ctx.saved_tensors
         device, dtype = positions.device, positions.dtype
         st = composite_structs(warp_scalar(dtype))
         n_rays = offsets.shape[0] - 1
@@ -208,7 +240,7 @@ class _Composite(torch.autograd.Function):
             ]
         else:
             grids = [(_empty(1, 1, 1, like=positions), _empty(1, 1, 1, 3, like=positions))] * n_parts
-        samples, grid = _ray_arguments(st, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)
+        samples, grid = _ray_arguments(st, order, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)
         saved = _saved(st, *kept)
         grad_out = _ray_outputs(st, g_rgb, g_acc.contiguous(), g_depth)
 

@@ -199,8 +199,10 @@ def composite_structs(dtype) -> SimpleNamespace:
 
     @wp.struct
     class RaySamples:
-        """Packed samples: where to read the grids, where they lie on their ray, and their fg weight."""
+        """Packed samples: where to read the grids, where they lie on their ray, and their fg weight; ``order``
+        is the order in which the rays are processed (see :func:`ray_order_keys`)."""
 
+        order: wp.array(dtype=wp.int32)
         offsets: wp.array(dtype=wp.int32)
         positions: wp.array(dtype=vec3)
         t_mid: wp.array(dtype=dtype)
@@ -249,6 +251,47 @@ def composite_structs(dtype) -> SimpleNamespace:
         Saved=Saved,
         Gradients=Gradients,
     )
+
+
+ORDER_CELLS = 32  # cells per axis of the lattice whose Morton order orders the rays
+ORDER_MIN_RAYS = 4096  # smaller launches keep their rays' order (ordering them costs more than it saves)
+
+
+@functools.cache
+def ray_order_keys(dtype):
+    """Sort keys that put rays reading the same part of a grid next to each other: the Morton code of the cell of
+    the ``ORDER_CELLS``^3 lattice ``frame`` that holds the ray's middle sample (samples outside count as in the
+    nearest cell), ``ORDER_CELLS``^3 for a ray without samples (those come last).
+
+    The compositing kernels read 8 grid nodes per sample; rays that come in random order fetch each node's cache
+    line anew, neighbouring rays share them (and on CPU each thread's piece of the launch covers one region).
+    """
+    g = grid_funcs(dtype)
+    CELLS = ORDER_CELLS
+    BITS = CELLS.bit_length() - 1
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=OPTIONS)
+    def ray_keys(
+        r0: int,
+        offsets: wp.array(dtype=wp.int32),
+        positions: wp.array(dtype=g.vec3),
+        frame: g.GridFrame,
+        keys: wp.array(dtype=wp.int32),
+    ):
+        r = wp.tid() + r0
+        begin = offsets[r]
+        end = offsets[r + 1]
+        key = int(CELLS * CELLS * CELLS)
+        if end > begin:
+            f = wp.cw_mul(positions[(begin + end) // 2] - frame.bmin, frame.scale)
+            key = int(0)
+            for a in range(3):
+                c = int(wp.clamp(f[a], dtype(0.0), dtype(CELLS - 1)))
+                for b in range(BITS):
+                    key = key | (((c >> b) & 1) << (3 * b + a))
+        keys[r] = wp.int32(key)
+
+    return ray_keys
 
 
 @functools.cache
@@ -303,7 +346,7 @@ def composite_forward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, sav
         out: st.RayOutputs,
         saved: st.Saved,
     ):
-        r = wp.tid() + r0
+        r = samples.order[wp.tid() + r0]
         begin = int(samples.offsets[r])
         end = int(samples.offsets[r + 1])
         T = dtype(1.0)
@@ -365,7 +408,7 @@ def composite_backward(dtype, act: int, has_fg: bool, rgb: bool, depth: bool, gr
         grad_out: st.RayOutputs,
         grad_in: st.Gradients,
     ):
-        r = wp.tid() + r0
+        r = samples.order[wp.tid() + r0]
         begin = int(samples.offsets[r])
         used = int(saved.n_used[r])
         gA = grad_out.alpha[r]

@@ -7,11 +7,12 @@ import time
 import pytest
 import torch
 from devices import on_device
+from elicit_diffrender.kernels.raymarch import ORDER_MIN_RAYS
 
 from elicit_diffrender.device import split_launch, to_warp
 from elicit_diffrender.reference import composite_reference
 from elicit_diffrender.skinning import lookup_baked_warp
-from elicit_diffrender.volume import BakedWarp, RaySamples
+from elicit_diffrender.volume import BakedWarp, RaySamples, coherent_ray_order
 from elicit_diffrender.volume import composite as _composite
 from elicit_diffrender.volume import sample_rays as _sample_rays
 
@@ -104,6 +105,40 @@ def test_gradients_match_reference_autograd():
     )
     for a, b in zip(grads, ref, strict=True):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-8)
+
+
+def test_rays_are_composited_in_a_coherent_order_that_changes_no_result():
+    n = ORDER_MIN_RAYS  # fewer rays keep their order
+    o, d = camera_rays(n, seed=4)
+    d[:7] = -d[:7]  # these point away from the box: no samples
+    samples = sample_rays(o, d, BOX.double(), 16)
+    order = coherent_ray_order(samples.offsets, samples.positions, BOX).cpu().long()
+    assert sorted(order.tolist()) == list(range(n))
+    empty = (samples.offsets[1:] == samples.offsets[:-1]).cpu()
+    assert empty[:7].all() and int(empty.sum()) == 7
+    assert set(order[-7:].tolist()) == set(range(7))  # rays without samples come last
+    offsets = samples.offsets.cpu().long()
+    middle = samples.positions.cpu()[((offsets[:-1] + offsets[1:]) // 2)[order[:-7]]]
+    unsorted = samples.positions.cpu()[((offsets[:-1] + offsets[1:]) // 2)[7:]]
+    step_sorted = (middle[1:] - middle[:-1]).norm(dim=1).mean()
+    step_input = (unsorted[1:] - unsorted[:-1]).norm(dim=1).mean()
+    assert step_sorted < 0.5 * step_input  # neighbours in the order read nearby cells
+    few = coherent_ray_order(samples.offsets[:101], samples.positions, BOX).cpu()
+    assert torch.equal(few, torch.arange(100, dtype=torch.int32))  # a small launch keeps its order
+
+    # The order is internal: shuffling the input rays shuffles the outputs and leaves the gradients alone.
+    density, color = random_grid((9, 8, 7), seed=5)
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    results = []
+    for oo, dd in ((o, d), (o[perm], d[perm])):
+        out = composite(sample_rays(oo, dd, BOX.double(), 16), density, color, BOX, outputs=("rgb", "alpha", "depth"))
+        grads = torch.autograd.grad(out["rgb"].sum() + out["alpha"].sum() + out["depth"].sum(), (density, color))
+        results.append((out, grads))
+    (first, grads_first), (shuffled, grads_shuffled) = results
+    for key in ("rgb", "alpha", "depth"):
+        torch.testing.assert_close(shuffled[key], first[key][perm.to(first[key].device)], atol=1e-12, rtol=1e-12)
+    for a, b in zip(grads_shuffled, grads_first, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
 
 
 def test_float32_agrees_with_float64():
