@@ -88,6 +88,7 @@ def machine_info(device: torch.device) -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # the package sets PASSIVE unless the user set it
     }
     if device.type == "cuda":
         info["gpu"] = torch.cuda.get_device_name(device)

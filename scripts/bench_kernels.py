@@ -50,6 +50,10 @@ ARGS = parse_args()
 if not ARGS.keep_kernel_cache and not ARGS.memory_case:  # a fresh cache so the first call really compiles
     os.environ["ELICIT_WARP_CACHE"] = tempfile.mkdtemp(prefix="elicit-bench-warp-")
 
+# The package first: it sets OMP_WAIT_POLICY before torch starts, so both implementations run as they do in
+# the package's own processes (with torch's idle threads spinning, they took a core from Warp's launches).
+import elicit_diffrender  # noqa: E402, F401, I001
+
 import torch  # noqa: E402
 
 from elicit_diffrender.benchtools import (  # noqa: E402
@@ -336,7 +340,8 @@ def main() -> int:
     ]
     md = (
         f"# Kernel micro-benchmarks\n\nDevice: {data['machine']['device']} ({data['machine']['cpu_count']} cores, "
-        f"torch {data['machine']['torch']} on {data['machine']['torch_threads']} threads). Median of {repeats} "
+        f"torch {data['machine']['torch']} on {data['machine']['torch_threads']} threads, OMP_WAIT_POLICY "
+        f"{data['machine']['omp_wait_policy']} as the package sets it). Median of {repeats} "
         f"interleaved runs; both implementations float32, measured in the same process. "
         f"`first call` is the first launch of a kernel family in a fresh kernel cache (compilation included).\n\n"
         + markdown_table(rows, columns)
