@@ -23,7 +23,7 @@ from .errors import ElicitError
 from .field import CanonicalField, MotionWeights, Room, grid_points, grid_shape, signed_distance
 from .geometry import axis_angle_to_matrix, rigid_inverse
 from .io import write_tensors
-from .skinning import inverse_lbs, lookup_baked_warp
+from .skinning import inverse_lbs
 from .volume import BakedWarp, composite, sample_rays
 
 FORMAT = "elicit-avatar/2"  # a safetensors file: the tensors, and the rest as JSON in its header
@@ -254,10 +254,11 @@ class Avatar(nn.Module):
         """The inverse warp of a pose as a look-up table: (X, Y, Z, 4) summed bone weight ``fg`` times canonical
         position, and ``fg``, at the nodes of a lattice ``cell`` metres apart over the observation-space ``box``.
 
-        Trilinear look-ups in it (:class:`BakedWarp` in :meth:`render_rays`, or :meth:`warp_points`) replace the
-        per-bone warp of every sample while the motion weights and the pose are fixed. The position is weighted by
-        ``fg`` so that nodes outside every bone's reach (``fg = 0``, position meaningless) do not pull a look-up
-        beside them; between nodes where the warp jumps (a gate between two limbs) a look-up blends the two sides.
+        Trilinear look-ups in it (:class:`BakedWarp` in :meth:`render_rays`, ``skinning.lookup_baked_warp``)
+        replace the per-bone warp of every sample while the motion weights and the pose are fixed. The position is
+        weighted by ``fg`` so that nodes outside every bone's reach (``fg = 0``, position meaningless) do not pull a
+        look-up beside them; between nodes where the warp jumps (a gate between two limbs) a look-up blends the two
+        sides.
         """
         shape = grid_shape(box.cpu(), cell)
         nodes = grid_points(box.double().cpu(), shape).reshape(-1, 3).to(torch.float32).to(self.device)
@@ -275,15 +276,10 @@ class Avatar(nn.Module):
             gate=self.gate,
         )  # fmt: skip
 
-    def warp_points(
-        self, points: torch.Tensor, bones: torch.Tensor, baked: BakedWarp | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Observation-space points (N, 3) -> canonical points (N, 3) and foreground likelihood (N,): the exact
-        inverse warp, or trilinear look-ups in ``baked`` (a table from :meth:`bake_warp` and its box)."""
-        if baked is not None:
-            x_c, fg = lookup_baked_warp(points, baked.table, baked.box)
-        else:
-            x_c, fg = self._exact_warp(points, bones)
+    def warp_points(self, points: torch.Tensor, bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Observation-space points (N, 3) -> canonical points (N, 3) and foreground likelihood (N,) by the exact
+        inverse warp."""
+        x_c, fg = self._exact_warp(points, bones)
         return x_c, self.foreground(fg)
 
     def render_rays(

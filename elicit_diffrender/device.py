@@ -163,17 +163,20 @@ def launch(
 _SCRATCH: dict[tuple, torch.Tensor] = {}
 
 
-def scratch_zeros(name: str, like: torch.Tensor) -> torch.Tensor:
-    """A zeroed tensor shaped like ``like`` for partial sums a caller adds up before returning, reused from the
-    last call with the same ``name`` and shape (a fresh one pays its page faults on every call: 2 ms for
-    25 MB here); valid until that next call."""
-    key = (name, tuple(like.shape), like.dtype, like.device)
-    buf = _SCRATCH.get(key)
-    if buf is None:
-        buf = _SCRATCH[key] = torch.zeros_like(like, memory_format=torch.contiguous_format)
-    else:
-        buf.zero_()
-    return buf
+def partial_sums(name: str, like: torch.Tensor, parts: int) -> list[torch.Tensor]:
+    """One zeroed tensor shaped like ``like`` per launch piece, for partial sums that the caller adds into the
+    first and returns. The first is fresh; the others are reused from the last call with the same ``name`` and
+    shape (a fresh one pays its page faults on every call: 2 ms for 25 MB here), valid until that next call."""
+    bufs = [torch.zeros_like(like, memory_format=torch.contiguous_format)]
+    for part in range(1, parts):
+        key = (name, part, tuple(like.shape), like.dtype, like.device)
+        buf = _SCRATCH.get(key)
+        if buf is None:
+            buf = _SCRATCH[key] = torch.zeros_like(like, memory_format=torch.contiguous_format)
+        else:
+            buf.zero_()
+        bufs.append(buf)
+    return bufs
 
 
 _POOL: ThreadPoolExecutor | None = None

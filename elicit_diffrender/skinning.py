@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .device import grid_frame, launch, launch_parts, scratch_zeros, to_warp, warp_scalar
+from .device import grid_frame, launch, launch_parts, partial_sums, to_warp, warp_scalar
 from .kernels.skinning import (
     baked_warp_lookup,
     forward_lbs_backward,
@@ -75,15 +75,10 @@ class _InverseLBS(torch.autograd.Function):
         copies = bone_grad_copies(device) if need_bones else 1
         tiny4 = torch.zeros((1, 1, 1, 1), dtype=dtype, device=device)
         # Per-thread buffers for everything several points add into.
+        weight_sums = partial_sums("weights", weights, parts) if need_weights else [tiny4] * parts
         bufs = [
-            (
-                (torch.zeros_like(weights) if part == 0 else scratch_zeros(f"weights{part}", weights))
-                if need_weights
-                else tiny4,
-                rot.new_zeros((copies * rot.shape[0], 3, 3)),
-                trans.new_zeros((copies * trans.shape[0], 3)),
-            )
-            for part in range(parts)
+            (gw, rot.new_zeros((copies * rot.shape[0], 3, 3)), trans.new_zeros((copies * trans.shape[0], 3)))
+            for gw in weight_sums
         ]
         st, warp = _warp_arguments(rot, trans, weights, ctx.box, ctx.eps, ctx.gate)
         common = [

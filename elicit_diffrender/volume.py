@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .device import grid_frame, launch, launch_parts, scratch_zeros, to_warp, warp_scalar
+from .device import grid_frame, launch, launch_parts, partial_sums, to_warp, warp_scalar
 from .kernels.raymarch import (
     ACT_RELU,
     ACT_SOFTPLUS,
@@ -234,10 +234,8 @@ class _Composite(torch.autograd.Function):
         grad_fg = torch.zeros_like(fg_t)
         n_parts = launch_parts(n_rays, device)
         if need_grid:  # one gradient buffer per thread, summed into the first afterwards
-            grids = [(torch.zeros_like(density), torch.zeros_like(color_t))]
-            grids += [
-                (scratch_zeros(f"density{p}", density), scratch_zeros(f"color{p}", color_t)) for p in range(1, n_parts)
-            ]
+            density_sums = partial_sums("density", density, n_parts)
+            grids = list(zip(density_sums, partial_sums("color", color_t, n_parts), strict=True))
         else:
             grids = [(_empty(1, 1, 1, like=positions), _empty(1, 1, 1, 3, like=positions))] * n_parts
         samples, grid = _ray_arguments(st, order, positions, fg_t, density, color_t, offsets, t_mid, deltas, ctx.box)
