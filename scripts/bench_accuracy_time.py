@@ -25,9 +25,9 @@ import sys
 import time
 from pathlib import Path
 
-from elicit_diffrender.avatar import AVATAR_FILE
-from elicit_diffrender.benchtools import PSNR_TIE_DB
+from elicit_diffrender.apps.benchtools import PSNR_TIE_DB
 from elicit_diffrender.fit.checkpoint import CHECKPOINT
+from elicit_diffrender.model.avatar import AVATAR_FILE
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = "cpu-fast"
@@ -90,8 +90,8 @@ def fit_point(elicit: str, subject: Path, run_dir: Path, overrides: list[str]) -
     m = json.loads(metrics.read_text())
     timing = run_dir / "render_time.json"
     if not timing.is_file():
-        from elicit_diffrender.animate import load_avatar
-        from elicit_diffrender.subject import load_subject
+        from elicit_diffrender.data.subject import load_subject
+        from elicit_diffrender.model.load import load_avatar
 
         s = load_subject(subject)
         avatar = load_avatar(run_dir)
@@ -115,8 +115,8 @@ def kernel_sweep() -> list[dict]:
     """Float32 ray marching error against a float64, 1024-sample, no-early-stop reference, and its time."""
     import torch
 
-    from elicit_diffrender.benchtools import time_interleaved
-    from elicit_diffrender.volume import composite, sample_rays
+    from elicit_diffrender.apps.benchtools import time_interleaved
+    from elicit_diffrender.model.volume import composite, sample_rays
 
     torch.manual_seed(0)
     res, n_rays = 96, 8192
@@ -175,7 +175,7 @@ def plot(points: list[dict], front: list[str], ringed: list[str], path: Path) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from elicit_diffrender.io import atomic_write
+    from elicit_diffrender.core.io import atomic_write
 
     fig, ax = plt.subplots(figsize=(10, 5))
     for i, p in enumerate(points, 1):  # numbered points, named in the legend: the cluster stays legible
@@ -217,7 +217,7 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "accuracy_time")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = ap.parse_args()
-    from elicit_diffrender.benchtools import markdown_table, write_report
+    from elicit_diffrender.apps.benchtools import markdown_table, write_report
 
     elicit = str(Path(sys.executable).with_name("elicit"))
     start = time.perf_counter()

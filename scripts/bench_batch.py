@@ -31,8 +31,8 @@ SEEDS = (0, 1, 2, 3)
 
 
 def main() -> int:
-    from elicit_diffrender.benchtools import machine_info, markdown_table, run, write_report
-    from elicit_diffrender.device import cpus_given
+    from elicit_diffrender.apps.benchtools import machine_info, markdown_table, run, write_report
+    from elicit_diffrender.core.device import cpus_given
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, default=ROOT / "runs" / "bench_batch")

@@ -22,7 +22,7 @@ import tarfile
 import time
 from pathlib import Path
 
-from elicit_diffrender.benchtools import fit_and_eval, markdown_table, run, worker_env, write_report
+from elicit_diffrender.apps.benchtools import fit_and_eval, markdown_table, run, worker_env, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = "cef11e6"  # main on 2026-12-03, before the baked warp and the fused optimiser
@@ -64,7 +64,7 @@ def main() -> int:
     p.add_argument("--work", type=Path, default=ROOT / "runs" / "bench_fit_speed")
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = p.parse_args()
-    from elicit_diffrender.demo import DEMO_MOTION, DEMO_SEED
+    from elicit_diffrender.apps.demo import DEMO_MOTION, DEMO_SEED
 
     elicit = str(Path(sys.executable).with_name("elicit"))
     env = worker_env(1)  # each fit alone, with every CPU this process is given

@@ -56,7 +56,7 @@ import elicit_diffrender  # noqa: E402, F401, I001
 
 import torch  # noqa: E402
 
-from elicit_diffrender.benchtools import (  # noqa: E402
+from elicit_diffrender.apps.benchtools import (  # noqa: E402
     machine_info,
     markdown_table,
     peak_memory,
@@ -64,11 +64,11 @@ from elicit_diffrender.benchtools import (  # noqa: E402
     time_once,
     write_report,
 )
-from elicit_diffrender.device import default_device  # noqa: E402
-from elicit_diffrender.geometry import axis_angle_to_matrix  # noqa: E402
-from elicit_diffrender.reference import composite_reference, inverse_lbs_reference  # noqa: E402
-from elicit_diffrender.skinning import inverse_lbs  # noqa: E402
-from elicit_diffrender.volume import composite, sample_rays  # noqa: E402
+from elicit_diffrender.core.device import default_device  # noqa: E402
+from elicit_diffrender.core.geometry import axis_angle_to_matrix  # noqa: E402
+from elicit_diffrender.model.torch_reference import composite_reference, inverse_lbs_reference  # noqa: E402
+from elicit_diffrender.model.skinning import inverse_lbs  # noqa: E402
+from elicit_diffrender.model.volume import composite, sample_rays  # noqa: E402
 
 BOX = torch.tensor([[-0.9, -1.0, -0.5], [0.9, 1.0, 0.5]])
 _FIRST_CALL: set[str] = set()

@@ -22,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from elicit_diffrender.benchtools import (
+from elicit_diffrender.apps.benchtools import (
     SYNTHETIC_SUBJECTS,
     add_job_arguments,
     fit_and_eval,
@@ -45,7 +45,7 @@ def prepare_subject(elicit: str, truth: Path, out: Path, motion: str, env: dict)
     """``elicit prepare`` on the synthetic subject's input image, mask and focal length."""
     if (out / "subject.json").is_file():
         return
-    from elicit_diffrender.subject import load_subject
+    from elicit_diffrender.data.subject import load_subject
 
     subject = load_subject(truth)
     cam, frame = subject.input_camera, subject.input_frame

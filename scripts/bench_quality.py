@@ -19,7 +19,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from elicit_diffrender.benchtools import (
+from elicit_diffrender.apps.benchtools import (
     PSNR_TIE_DB,
     SYNTHETIC_SUBJECTS,
     add_job_arguments,
@@ -79,7 +79,7 @@ def main() -> int:
         help="the ablations other than no_semantic on the first N subjects",
     )
     args = p.parse_args()
-    from elicit_diffrender.benchtools import markdown_table, write_report
+    from elicit_diffrender.apps.benchtools import markdown_table, write_report
 
     elicit = str(Path(sys.executable).with_name("elicit"))
     env = worker_env(args.jobs)

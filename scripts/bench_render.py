@@ -35,11 +35,12 @@ def main() -> int:
 
         os.environ["ELICIT_MITSUBA_VARIANT"] = args.variant
 
-    from elicit_diffrender.benchtools import markdown_table, write_report
+    from elicit_diffrender.apps.benchtools import markdown_table, write_report
     from elicit_diffrender.body import load_body
     from elicit_diffrender.body.template import template_colors
-    from elicit_diffrender.mesh_render import MeshAppearance, MeshRenderer, mitsuba
-    from elicit_diffrender.rigs import ring_cameras
+    from elicit_diffrender.core.mitsuba_variant import mitsuba
+    from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
+    from elicit_diffrender.data.rigs import ring_cameras
 
     mi = mitsuba()
     body = load_body({"model": "anny"})

@@ -52,7 +52,7 @@ export ELICIT_MITSUBA_VARIANT=$VARIANT
 step environment 60 "0-$((NCPU - 1))" "$PY" - <<'EOF'
 import json, os, platform, subprocess
 import torch, warp as wp
-from elicit_diffrender.mesh_render import mitsuba
+from elicit_diffrender.core.mitsuba_variant import mitsuba
 wp.init()
 mi = mitsuba()  # the variant ELICIT_MITSUBA_VARIANT names
 import drjit as dr
@@ -81,9 +81,9 @@ step bench_kernels 150 "0-$((HALF - 1))" "$PY" scripts/bench_kernels.py --device
   --name "kernels_$ELICIT_DEVICE" --out "$OUT"
 step bench_render 90 "0-$((HALF - 1))" "$PY" scripts/bench_render.py --variant "$VARIANT" --name "render_$ELICIT_DEVICE" \
   --out "$OUT"
-step fit_paper 240 "0-$((HALF - 1))" "$PY" -m elicit_diffrender.cli fit "$SUBJECT" --out "$WORK/fit" --preset paper \
+step fit_paper 240 "0-$((HALF - 1))" "$PY" -m elicit_diffrender.apps.cli fit "$SUBJECT" --out "$WORK/fit" --preset paper \
   --set "init_steps=$INIT_STEPS" --set "steps=$FIT_STEPS" --set checkpoint_every=500 --set preview_every=100000
-step eval_paper 90 "0-$((HALF - 1))" "$PY" -m elicit_diffrender.cli eval "$WORK/fit" "$SUBJECT" \
+step eval_paper 90 "0-$((HALF - 1))" "$PY" -m elicit_diffrender.apps.cli eval "$WORK/fit" "$SUBJECT" \
   --out "$WORK/fit/metrics.json"
 wait "$TESTS"
 

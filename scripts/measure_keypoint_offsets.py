@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from elicit_diffrender.body.fitting import KEYPOINT_OFFSETS, KEYPOINTS
-from elicit_diffrender.checks import read_image, read_mask
-from elicit_diffrender.evaluate import angle_around_body
-from elicit_diffrender.io import write_image
-from elicit_diffrender.mediapipe_bridge import detect_pose
-from elicit_diffrender.subject import load_subject
+from elicit_diffrender.core.checks import read_image, read_mask
+from elicit_diffrender.core.io import write_image
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.inputs.mediapipe_bridge import detect_pose
+from elicit_diffrender.outputs.evaluate import angle_around_body
 
 SUBJECTS = {4: "walk_in_place", 5: "wave", 6: "squat", 7: "walk_in_place"}  # seed -> motion
 MAX_ANGLE = 50.0  # degrees from the front camera

@@ -29,27 +29,27 @@ ROOT = Path(__file__).resolve().parents[1]
 # part -> (file suffix, function name; "" for every function of the file) of the functions whose cumulative
 # time it owns. The parts never call one another, so their times add up without double counting.
 PARTS: dict[str, list[tuple[str, str]]] = {
-    "inverse LBS forward (Warp)": [("elicit_diffrender/skinning.py", "forward")],
-    "inverse LBS backward (Warp)": [("elicit_diffrender/skinning.py", "backward")],
-    "ray marching forward (Warp)": [("elicit_diffrender/volume.py", "forward")],
-    "ray marching backward (Warp)": [("elicit_diffrender/volume.py", "backward")],
-    "ray sampling, occupancy and baked warp (Warp)": [("elicit_diffrender/volume.py", "sample_rays")],
+    "inverse LBS forward (Warp)": [("elicit_diffrender/model/skinning.py", "forward")],
+    "inverse LBS backward (Warp)": [("elicit_diffrender/model/skinning.py", "backward")],
+    "ray marching forward (Warp)": [("elicit_diffrender/model/volume.py", "forward")],
+    "ray marching backward (Warp)": [("elicit_diffrender/model/volume.py", "backward")],
+    "ray sampling, occupancy and baked warp (Warp)": [("elicit_diffrender/model/volume.py", "sample_rays")],
     "total variation (Warp)": [
-        ("elicit_diffrender/total_variation.py", "forward"),
-        ("elicit_diffrender/total_variation.py", "backward"),
+        ("elicit_diffrender/model/total_variation.py", "forward"),
+        ("elicit_diffrender/model/total_variation.py", "backward"),
     ],
-    "sparsity": [("elicit_diffrender/field.py", "sparsity_loss")],
+    "sparsity": [("elicit_diffrender/model/field.py", "sparsity_loss")],
     "grid regions (leaf copies, gradient adds)": [("elicit_diffrender/fit/regions.py", "")],
     "Mitsuba body renders": [
-        ("elicit_diffrender/mesh_render.py", "render"),
-        ("elicit_diffrender/mesh_render.py", "__call__"),
+        ("elicit_diffrender/data/mesh_render.py", "render"),
+        ("elicit_diffrender/data/mesh_render.py", "__call__"),
     ],
     "semantic prior": [
         ("elicit_diffrender/fit/completion.py", "loss"),
         ("elicit_diffrender/fit/completion.py", "build"),
-        ("elicit_diffrender/encoders.py", "forward"),
+        ("elicit_diffrender/model/encoders.py", "forward"),
     ],
-    "losses": [("elicit_diffrender/losses.py", "")],
+    "losses": [("elicit_diffrender/model/losses.py", "")],
     "optimiser step": [("torch/optim/adam.py", "step")],
     "checkpoint files": [("elicit_diffrender/fit/checkpoint.py", "save_checkpoint")],
 }
@@ -78,12 +78,12 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=240)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = ap.parse_args()
-    from elicit_diffrender.benchtools import machine_info, markdown_table, write_report
-    from elicit_diffrender.config import make_config
-    from elicit_diffrender.device import default_device
-    from elicit_diffrender.fit import Trainer
-    from elicit_diffrender.subject import load_subject
-    from elicit_diffrender.synth import synthesize
+    from elicit_diffrender.apps.benchtools import machine_info, markdown_table, write_report
+    from elicit_diffrender.core.device import default_device
+    from elicit_diffrender.data.subject import load_subject
+    from elicit_diffrender.fit.config import make_config
+    from elicit_diffrender.fit.trainer import Trainer
+    from elicit_diffrender.inputs.synth import synthesize
 
     logging.basicConfig(level=logging.WARNING)
     phases: dict[str, tuple[float, pstats.Stats]] = {}

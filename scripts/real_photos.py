@@ -46,15 +46,16 @@ def main() -> int:
     args = ap.parse_args()
     import imageio.v3 as iio
 
-    from elicit_diffrender.animate import contact_sheet, load_avatar
-    from elicit_diffrender.avatar import AVATAR_FILE
-    from elicit_diffrender.benchtools import run, worker_env
+    from elicit_diffrender.apps.benchtools import run, worker_env
     from elicit_diffrender.body.fitting import RENDER_STEPS
+    from elicit_diffrender.core.io import write_text
+    from elicit_diffrender.data.rigs import place_ring
+    from elicit_diffrender.data.subject import load_subject
     from elicit_diffrender.fit.checkpoint import CHECKPOINT
-    from elicit_diffrender.fit.views import place_ring
-    from elicit_diffrender.io import write_text
-    from elicit_diffrender.prepare import RENDER_SIZE
-    from elicit_diffrender.subject import load_subject
+    from elicit_diffrender.inputs.prepare import RENDER_SIZE
+    from elicit_diffrender.model.avatar import AVATAR_FILE
+    from elicit_diffrender.model.load import load_avatar
+    from elicit_diffrender.outputs.video import contact_sheet
 
     elicit = str(Path(sys.executable).with_name("elicit"))
     rows, tiles, captions = [], [], []

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 from test_fit import TINY as FIT_TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
-from elicit_diffrender import batch
-from elicit_diffrender.batch import BatchError, find_jobs, parse_steps
-from elicit_diffrender.cli import main
-from elicit_diffrender.synth import synthesize
+from elicit_diffrender.apps import batch
+from elicit_diffrender.apps.batch import BatchError, find_jobs, parse_steps
+from elicit_diffrender.apps.cli import main
+from elicit_diffrender.inputs.synth import synthesize
 
 TINY = [x for kv in [*FIT_TINY, "init_steps=10", "steps=10"] for x in ("--set", kv)]
 
@@ -90,7 +90,7 @@ def test_batch_joins_a_cluster_by_address(inputs, tmp_path):
         time.sleep(8)
         out = tmp_path / "batch"
         cmd = [
-            sys.executable, "-m", "elicit_diffrender.cli", "batch", str(inputs / "subject5"), "--out", str(out),
+            sys.executable, "-m", "elicit_diffrender.apps.cli", "batch", str(inputs / "subject5"), "--out", str(out),
             "--steps", "fit", "--address", "auto", *TINY,
         ]  # fmt: skip
         done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
@@ -149,7 +149,7 @@ def test_thread_pools_follow_the_cpus_given(prefix, env, expect):
     if prefix and shutil.which(prefix[0]) is None:
         pytest.skip("taskset is not installed")
     code = (
-        "import torch; from elicit_diffrender.device import size_thread_pools, cpu_threads; import drjit as dr; "
+        "import torch; from elicit_diffrender.core.device import size_thread_pools, cpu_threads; import drjit as dr; "
         "n = size_thread_pools(); print(n, torch.get_num_threads(), dr.thread_count(), cpu_threads())"
     )
     base = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from elicit_diffrender.body import PART_NAMES, BodyModelError, load_body
-from elicit_diffrender.geometry import rigid_inverse
-from elicit_diffrender.skinning import forward_lbs
+from elicit_diffrender.core.geometry import rigid_inverse
+from elicit_diffrender.model.skinning import forward_lbs
 
 
 def lbs_error(body, pose, orient=None, transl=None, reduced=False) -> float:

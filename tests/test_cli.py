@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from elicit_diffrender.cli import main
+from elicit_diffrender.apps.cli import main
 
 
 def test_bad_subject_gives_one_line_and_exit_2(tmp_path, capsys):
@@ -22,7 +22,7 @@ def test_bad_subject_gives_one_line_and_exit_2(tmp_path, capsys):
 def test_render_and_eval_commands(tmp_path):
     from test_fit import TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
-    from elicit_diffrender.synth import synthesize
+    from elicit_diffrender.inputs.synth import synthesize
 
     subject = synthesize(7, tmp_path / "s", size=64, spp=2, n_cameras=3, texture_size=128)
     run = tmp_path / "run"
@@ -87,5 +87,5 @@ def test_render_and_eval_commands(tmp_path):
 
 @pytest.mark.parametrize("args", [["--help"], ["fit", "--help"]])
 def test_help(args):
-    done = subprocess.run([sys.executable, "-m", "elicit_diffrender.cli", *args], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "elicit_diffrender.apps.cli", *args], capture_output=True, text=True)
     assert done.returncode == 0 and "usage" in done.stdout

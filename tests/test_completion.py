@@ -7,11 +7,11 @@ from scipy.spatial import cKDTree
 
 from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.body.template import vertex_normals
-from elicit_diffrender.cameras import look_at
-from elicit_diffrender.field import CanonicalField, grid_points
+from elicit_diffrender.core.cameras import look_at
+from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
 from elicit_diffrender.fit.completion import MirrorCompletion, visible_vertices
 from elicit_diffrender.fit.shading import Shading, estimate_shading
-from elicit_diffrender.mesh_render import MeshAppearance, MeshRenderer
+from elicit_diffrender.model.field import CanonicalField, grid_points
 
 
 def _canonical(anny_body):
@@ -140,8 +140,8 @@ def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):
 def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
     """The targets' sparse blur matrix reads the colour grid as trilinear look-ups at each source and six points
     ``BLUR_VOXELS`` cells around it do, border-clamped where they leave the box."""
-    from elicit_diffrender.avatar import sample_grid
     from elicit_diffrender.fit.completion import BLUR_VOXELS
+    from elicit_diffrender.model.avatar import sample_grid
 
     verts, normals = _canonical(anny_body)
     parts = anny_body.vertex_parts()

@@ -5,13 +5,8 @@ import json
 import pytest
 import torch
 
-from elicit_diffrender.encoders import (
-    FALLBACK_NAME,
-    EncoderError,
-    RandomFeatureEncoder,
-    load_encoder,
-    resolve_clip_weights,
-)
+from elicit_diffrender.core.weights import resolve_clip_weights
+from elicit_diffrender.model.encoders import FALLBACK_NAME, EncoderError, RandomFeatureEncoder, load_encoder
 
 TINY = {
     "embed_dim": 32,

@@ -3,9 +3,9 @@
 import numpy as np
 import torch
 
-from elicit_diffrender.cameras import look_at
-from elicit_diffrender.evaluate import angle_around_body, camera_in_frame, umeyama
-from elicit_diffrender.geometry import axis_angle_to_matrix
+from elicit_diffrender.core.cameras import look_at
+from elicit_diffrender.core.geometry import axis_angle_to_matrix
+from elicit_diffrender.outputs.evaluate import angle_around_body, camera_in_frame, umeyama
 
 
 def _similarity(seed: int):

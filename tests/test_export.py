@@ -12,15 +12,15 @@ import pytest
 import trimesh
 from gltf_skinning import posed_mesh, silhouette
 
-from elicit_diffrender.animate import load_avatar
-from elicit_diffrender.avatar import Avatar
-from elicit_diffrender.cli import main
-from elicit_diffrender.config import make_config
-from elicit_diffrender.export import ExportError, export_glb
-from elicit_diffrender.fit import fit
-from elicit_diffrender.fit.views import place_ring
-from elicit_diffrender.subject import load_subject
-from elicit_diffrender.synth import synthesize
+from elicit_diffrender.apps.cli import main
+from elicit_diffrender.data.rigs import place_ring
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.fit.config import make_config
+from elicit_diffrender.fit.run import fit
+from elicit_diffrender.inputs.synth import synthesize
+from elicit_diffrender.model.avatar import Avatar
+from elicit_diffrender.model.load import load_avatar
+from elicit_diffrender.outputs.export import ExportError, export_glb
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,18 +12,18 @@ import pytest
 import torch
 from devices import DEVICE
 
-from elicit_diffrender.animate import load_avatar
-from elicit_diffrender.avatar import Avatar, AvatarError
-from elicit_diffrender.config import ConfigError, make_config
-from elicit_diffrender.evaluate import psnr
-from elicit_diffrender.fit import FitError, Trainer
-from elicit_diffrender.fit.checkpoint import CHECKPOINT, read_checkpoint
+from elicit_diffrender.core.io import read_tensors, write_tensors
+from elicit_diffrender.data.subject import SubjectError, load_subject
+from elicit_diffrender.fit.checkpoint import CHECKPOINT, FitError, read_checkpoint
+from elicit_diffrender.fit.config import ConfigError, make_config
+from elicit_diffrender.fit.trainer import Trainer
 from elicit_diffrender.fit.views import crop_image
-from elicit_diffrender.io import read_tensors, write_tensors
-from elicit_diffrender.skinning import lookup_baked_warp
-from elicit_diffrender.subject import SubjectError, load_subject
-from elicit_diffrender.synth import synthesize
-from elicit_diffrender.volume import BakedWarp
+from elicit_diffrender.inputs.synth import synthesize
+from elicit_diffrender.model.avatar import Avatar, AvatarError
+from elicit_diffrender.model.load import load_avatar
+from elicit_diffrender.model.skinning import lookup_baked_warp
+from elicit_diffrender.model.volume import BakedWarp
+from elicit_diffrender.outputs.evaluate import psnr
 
 TINY = [
     "init_steps=30",
@@ -356,7 +356,7 @@ def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
 @pytest.mark.slow
 def test_kill_and_resume(tmp_path, tiny_subject):
     run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "elicit_diffrender.cli", "fit", str(tiny_subject.root), "--out", str(run)]
+    cmd = [sys.executable, "-m", "elicit_diffrender.apps.cli", "fit", str(tiny_subject.root), "--out", str(run)]
     cmd += [x for kv in TINY + ["steps=400"] for x in ("--set", kv)]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)

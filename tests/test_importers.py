@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from elicit_diffrender.body.fitting import SMPL_TO_ANNY
-from elicit_diffrender.importers import SourceImportError, import_elicit_wild, import_zju
-from elicit_diffrender.io import write_image
-from elicit_diffrender.subject import load_subject
+from elicit_diffrender.core.io import write_image
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.inputs.importers import SourceImportError, import_elicit_wild, import_zju
 
 
 def write_wild(folder, focal, pred_joints=None, size=64):

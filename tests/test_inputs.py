@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from elicit_diffrender.checks import InputError, read_image, read_mask
-from elicit_diffrender.cli import main
-from elicit_diffrender.importers import SourceImportError, import_zju
-from elicit_diffrender.io import folder_in_place, write_image
-from elicit_diffrender.motions import MotionError, load_motion_npz
-from elicit_diffrender.prepare import PrepareError, prepare
-from elicit_diffrender.subject import SubjectError, load_subject
-from elicit_diffrender.synth import synthesize
+from elicit_diffrender.apps.cli import main
+from elicit_diffrender.core.checks import InputError, read_image, read_mask
+from elicit_diffrender.core.io import folder_in_place, write_image
+from elicit_diffrender.data.motions import MotionError, load_motion_npz
+from elicit_diffrender.data.subject import SubjectError, load_subject
+from elicit_diffrender.inputs.importers import SourceImportError, import_zju
+from elicit_diffrender.inputs.prepare import PrepareError, prepare
+from elicit_diffrender.inputs.synth import synthesize
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +140,7 @@ def test_folders_are_written_whole_and_not_overwritten_unasked(small_subject, tm
     code = main(["synth", "--seed", "4", "--out", str(target), "--size", "48", "--spp", "1"])
     one_line_error(capsys, code, "folder exists and is not empty; pass --force")
     # A full disk halfway through an overwrite: the old subject stays whole and loadable.
-    import elicit_diffrender.subject as subject_module
+    import elicit_diffrender.data.subject as subject_module
 
     calls = {"n": 0}
     real = subject_module.write_image
@@ -172,8 +172,8 @@ def test_a_run_folder_with_an_earlier_fit_needs_resume_or_force(small_subject, t
 
 
 def test_an_unwritable_output_fails_before_the_body_fit(tmp_path, capsys, monkeypatch):
-    import elicit_diffrender.io as io_module
-    import elicit_diffrender.prepare as prep
+    import elicit_diffrender.core.io as io_module
+    import elicit_diffrender.inputs.prepare as prep
 
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / "ro"))

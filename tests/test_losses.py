@@ -2,7 +2,7 @@
 
 import torch
 
-from elicit_diffrender.losses import (
+from elicit_diffrender.model.losses import (
     Perceptual,
     edge_distance,
     edge_loss,

@@ -5,9 +5,9 @@ import pytest
 import trimesh
 
 from elicit_diffrender.body.template import template_colors
-from elicit_diffrender.cameras import look_at
-from elicit_diffrender.mesh_render import MeshAppearance, MeshRenderer, RenderError
-from elicit_diffrender.rigs import ring_cameras
+from elicit_diffrender.core.cameras import look_at
+from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer, RenderError
+from elicit_diffrender.data.rigs import ring_cameras
 
 
 def first_hit_faces(vertices: np.ndarray, faces: np.ndarray, cam) -> np.ndarray:
@@ -93,8 +93,8 @@ def test_render_requests_are_checked():
 def test_differentiable_silhouette_covers_the_mask_and_grows_toward_a_larger_target():
     import torch
 
-    from elicit_diffrender.cameras import Camera
-    from elicit_diffrender.mesh_render import DifferentiableSilhouette
+    from elicit_diffrender.core.cameras import Camera
+    from elicit_diffrender.data.mesh_render import DifferentiableSilhouette
 
     # A 1 m square at z = 0 seen from 3 m: about 21 x 21 pixels in the middle of a 64 x 64 image.
     verts = torch.tensor([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]], requires_grad=True)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from elicit_diffrender.body import load_body
-from elicit_diffrender.motions import (
+from elicit_diffrender.data.motions import (
     BUILTIN_MOTIONS,
     Motion,
     MotionError,

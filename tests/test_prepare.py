@@ -5,11 +5,11 @@ import pytest
 import torch
 
 from elicit_diffrender.body.fitting import KEYPOINT_OFFSETS, AnnyFit
-from elicit_diffrender.io import write_image
-from elicit_diffrender.mediapipe_bridge import MediaPipeUnavailable, mediapipe_python
-from elicit_diffrender.prepare import PrepareError, check_not_cut_off, check_single_person, exif_focal, prepare
-from elicit_diffrender.subject import load_subject
-from elicit_diffrender.synth import synthesize
+from elicit_diffrender.core.io import write_image
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.inputs.mediapipe_bridge import MediaPipeUnavailable, mediapipe_python
+from elicit_diffrender.inputs.prepare import PrepareError, check_not_cut_off, check_single_person, exif_focal, prepare
+from elicit_diffrender.inputs.synth import synthesize
 
 HAS_MEDIAPIPE = mediapipe_python() is not None
 
@@ -185,8 +185,8 @@ def test_two_people_stop_with_a_message(tmp_path, synthetic_photo):
 
 def test_with_a_mask_keypoints_are_found_on_grey(tmp_path, monkeypatch):
     """Given a mask, MediaPipe sees the person on neutral grey, whatever the photo's background."""
-    import elicit_diffrender.prepare as prep
-    from elicit_diffrender.checks import read_image
+    import elicit_diffrender.inputs.prepare as prep
+    from elicit_diffrender.core.checks import read_image
 
     seen = {}
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from elicit_diffrender.cameras import Camera, look_at
-from elicit_diffrender.mesh_render import MeshRenderer
-from elicit_diffrender.rigs import (
+from elicit_diffrender.core.cameras import Camera, look_at
+from elicit_diffrender.data.mesh_render import MeshRenderer
+from elicit_diffrender.data.rigs import (
     RigError,
     default_rigs,
     place_cameras,

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from elicit_diffrender.avatar import Avatar, sample_grid
 from elicit_diffrender.body import PART_NAMES
+from elicit_diffrender.core.io import write_image
+from elicit_diffrender.data.subject import load_subject
 from elicit_diffrender.fit.room import LEG_PARTS, MAX_REACH, InputFrame, input_room
-from elicit_diffrender.io import write_image
-from elicit_diffrender.subject import load_subject
-from elicit_diffrender.synth import synthesize
+from elicit_diffrender.inputs.synth import synthesize
+from elicit_diffrender.model.avatar import Avatar, sample_grid
 
 MARGIN = 0.10
 HAIR = 0.20  # metres of mask above the head
@@ -117,7 +117,7 @@ def test_a_room_weight_keeps_the_torso_beside_a_hanging_arm(anny_body):
     import math
 
     from elicit_diffrender.body.template import vertex_normals
-    from elicit_diffrender.skinning import inverse_lbs
+    from elicit_diffrender.model.skinning import inverse_lbs
 
     body = anny_body
     pose = body.zero_pose().copy()

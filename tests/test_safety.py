@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from elicit_diffrender.animate import load_avatar
-from elicit_diffrender.avatar import AvatarError
 from elicit_diffrender.body import BodyModelError, load_body
-from elicit_diffrender.io import write_image
-from elicit_diffrender.motions import MotionError, load_motion, load_motion_npz
-from elicit_diffrender.safe_load import UnsafeFileError, load_npy, load_pickle
+from elicit_diffrender.core.io import write_image
+from elicit_diffrender.core.safe_load import UnsafeFileError, load_npy, load_pickle
+from elicit_diffrender.data.motions import MotionError, load_motion, load_motion_npz
+from elicit_diffrender.model.avatar import AvatarError
+from elicit_diffrender.model.load import load_avatar
 
 PACKAGE = Path(__file__).resolve().parents[1] / "elicit_diffrender"
 
@@ -31,7 +31,7 @@ class Payload:
 
 
 def elicit(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "elicit_diffrender.cli", *args], capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-m", "elicit_diffrender.apps.cli", *args], capture_output=True, text=True)
 
 
 def assert_refused(done: subprocess.CompletedProcess, marker: Path, text: str = "refused") -> None:
@@ -58,7 +58,7 @@ def write_photo(folder: Path, size: int = 64) -> None:
 def test_resume_from_a_crafted_checkpoint(tmp_path, marker):
     from test_fit import TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
-    from elicit_diffrender.synth import synthesize
+    from elicit_diffrender.inputs.synth import synthesize
 
     subject = synthesize(9, tmp_path / "s", size=48, spp=1, n_cameras=2, texture_size=64)
     run = tmp_path / "run"

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from elicit_diffrender.body import PART_NAMES
-from elicit_diffrender.rigs import ring_cameras
-from elicit_diffrender.sampling import (
+from elicit_diffrender.data.rigs import ring_cameras
+from elicit_diffrender.fit.hybrid_sampling import (
     DIRECTIONS,
     PART_PROBS,
     body_yaw,

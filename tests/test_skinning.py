@@ -6,10 +6,10 @@ import pytest
 import torch
 from devices import on_device
 
-from elicit_diffrender.geometry import axis_angle_to_matrix, matrix_to_axis_angle, merge_bones, rigid_inverse
-from elicit_diffrender.reference import forward_lbs_reference, inverse_lbs_reference
-from elicit_diffrender.skinning import forward_lbs as _forward_lbs
-from elicit_diffrender.skinning import inverse_lbs as _inverse_lbs
+from elicit_diffrender.core.geometry import axis_angle_to_matrix, matrix_to_axis_angle, merge_bones, rigid_inverse
+from elicit_diffrender.model.skinning import forward_lbs as _forward_lbs
+from elicit_diffrender.model.skinning import inverse_lbs as _inverse_lbs
+from elicit_diffrender.model.torch_reference import forward_lbs_reference, inverse_lbs_reference
 
 forward_lbs, inverse_lbs = on_device(_forward_lbs), on_device(_inverse_lbs)  # kernels on ELICIT_DEVICE
 
@@ -71,7 +71,7 @@ def test_inverse_lbs_gradients_match_reference_autograd():
 def test_bone_gradients_summed_over_copies_match_the_reference(monkeypatch):
     """On a GPU the backward pass adds each point's bone gradients into one of several copies (fewer atomics
     on one address) and sums them after; forced here on any device, with a count that does not divide P."""
-    import elicit_diffrender.skinning as skinning
+    import elicit_diffrender.model.skinning as skinning
 
     monkeypatch.setattr(skinning, "bone_grad_copies", lambda device: 7)
     gen = torch.Generator().manual_seed(21)

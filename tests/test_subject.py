@@ -6,9 +6,9 @@ import shutil
 import numpy as np
 import pytest
 
-from elicit_diffrender.motions import builtin_motion
-from elicit_diffrender.rigs import ring_cameras
-from elicit_diffrender.subject import SubjectError, load_subject, write_subject
+from elicit_diffrender.data.motions import builtin_motion
+from elicit_diffrender.data.rigs import ring_cameras
+from elicit_diffrender.data.subject import SubjectError, load_subject, write_subject
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +96,7 @@ def test_bad_subjects_name_file_and_field(subject_dir, tmp_path, case):
 
 
 def test_mask_size_must_match_the_image(subject_dir, tmp_path):
-    from elicit_diffrender.io import write_image
+    from elicit_diffrender.core.io import write_image
 
     root = edit(
         subject_dir, tmp_path, lambda r: write_image(r / "masks" / "cam01" / "000002.png", np.zeros((10, 10), np.uint8))

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from elicit_diffrender.mesh_render import MeshRenderer
-from elicit_diffrender.subject import load_subject
-from elicit_diffrender.synth import REGIONS, draw_outfit, garment_regions, make_person, synthesize
+from elicit_diffrender.data.mesh_render import MeshRenderer
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.inputs.synth import REGIONS, draw_outfit, garment_regions, make_person, synthesize
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ import pytest
 import torch
 from devices import on_device
 
-from elicit_diffrender.reference import total_variation_reference
-from elicit_diffrender.total_variation import total_variation as _total_variation
+from elicit_diffrender.model.torch_reference import total_variation_reference
+from elicit_diffrender.model.total_variation import total_variation as _total_variation
 
 total_variation = on_device(_total_variation)  # the kernel on ELICIT_DEVICE
 

@@ -9,12 +9,12 @@ import torch
 from devices import on_device
 from elicit_diffrender.kernels.raymarch import ORDER_MIN_RAYS
 
-from elicit_diffrender.device import split_launch, to_warp
-from elicit_diffrender.reference import composite_reference
-from elicit_diffrender.skinning import lookup_baked_warp
-from elicit_diffrender.volume import BakedWarp, RaySamples, coherent_ray_order
-from elicit_diffrender.volume import composite as _composite
-from elicit_diffrender.volume import sample_rays as _sample_rays
+from elicit_diffrender.core.device import split_launch, to_warp
+from elicit_diffrender.model.skinning import lookup_baked_warp
+from elicit_diffrender.model.torch_reference import composite_reference
+from elicit_diffrender.model.volume import BakedWarp, RaySamples, coherent_ray_order
+from elicit_diffrender.model.volume import composite as _composite
+from elicit_diffrender.model.volume import sample_rays as _sample_rays
 
 composite, sample_rays = on_device(_composite), on_device(_sample_rays)  # kernels on ELICIT_DEVICE
 

@@ -9,8 +9,9 @@ import threading
 import pytest
 import torch
 
-from elicit_diffrender.cli import main
-from elicit_diffrender.encoders import load_encoder, resolve_clip_weights
+from elicit_diffrender.apps.cli import main
+from elicit_diffrender.core.weights import resolve_clip_weights
+from elicit_diffrender.model.encoders import load_encoder
 
 TINY = {
     "embed_dim": 32,

@@ -1,4 +1,7 @@
-"""Body models behind one interface (see :mod:`elicit_diffrender.body.base`)."""
+"""Body models behind one interface (see :mod:`elicit_diffrender.body.base`), and the photo body fit (``fitting``).
+
+May import: ``core``.
+"""
 
 from __future__ import annotations
 

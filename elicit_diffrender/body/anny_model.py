@@ -14,7 +14,7 @@ import threading
 import numpy as np
 import torch
 
-from ..geometry import axis_angle_to_matrix
+from ..core.geometry import axis_angle_to_matrix
 from .base import PART_NAMES, BodyModel, BodyModelError, PosedBody, apply_global, check_pose
 
 # Anny: x = body left, z = up, the body faces -y.  World: x = left, y = up, faces +z.

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..errors import ElicitError
-from ..geometry import axis_angle_to_matrix, merge_bones
+from ..core.errors import ElicitError
+from ..core.geometry import axis_angle_to_matrix, merge_bones
 
 # The reference code's body-part groups (plus background, the 11 labels of its segmentation).
 PART_NAMES = (

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from ..core.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from .anny_model import ANNY_TO_WORLD, AnnyBody, anny_model
 
 # SMPL joint index -> Anny joint, for the joints whose anatomy agrees between the two rigs.

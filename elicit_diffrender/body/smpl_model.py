@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..geometry import axis_angle_to_matrix, merge_bones
-from ..safe_load import UnsafeFileError, load_npz, load_pickle
+from ..core.geometry import axis_angle_to_matrix, merge_bones
+from ..core.safe_load import UnsafeFileError, load_npz, load_pickle
 from .base import PART_NAMES, BodyModel, BodyModelError, PosedBody, apply_global, check_pose
 
 SMPL_JOINTS = [

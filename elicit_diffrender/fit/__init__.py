@@ -1,69 +1,13 @@
 """``elicit fit``: ELICIT's one-shot optimisation of an avatar (or the paper's textured-body baseline).
 
-Modules, one job each: ``views`` (what the fit looks at), ``render`` (the avatar at the training
-poses), ``objective`` (the loss terms and their weights), ``guard`` (empty-render recovery),
-``checkpoint`` (resumable state), ``streams`` (random generators), ``trainer`` (the loop). A run
-folder holds ``checkpoint.safetensors`` (resumable), ``avatar.safetensors`` (the result), ``run.json``,
-``log.txt`` and ``previews/``.
+Modules, one job each: ``config`` (the flat ``FitConfig``, presets, overrides), ``run`` (the run folder and
+the entry point ``fit``), ``views`` (what the fit looks at), ``hybrid_sampling`` (the paper's part- and
+rotation-aware novel views), ``render`` (the avatar at the training poses), ``objective`` (the loss terms and
+their weights), ``completion`` (the weights-free semantic fallback), ``shading``, ``room`` (density beyond the
+body), ``regions`` (regulariser blocks), ``guard`` (empty-render recovery), ``checkpoint`` (resumable state),
+``streams`` (random generators), ``trainer`` (the loop) and ``baseline`` (the explicit-texture fit). A run folder
+holds ``checkpoint.safetensors`` (resumable), ``avatar.safetensors`` (the result), ``run.json``, ``log.txt`` and
+``previews/``.
+
+May import: ``model``, ``data``, ``body``, ``core``. Not ``inputs`` or ``outputs`` (siblings).
 """
-
-from __future__ import annotations
-
-import logging
-import shutil
-from pathlib import Path
-
-from ..avatar import AVATAR_FILE, LEGACY_FILE
-from ..config import FitConfig
-from ..device import size_thread_pools
-from ..subject import Subject
-from .checkpoint import CHECKPOINT, FitError
-from .trainer import Trainer
-
-__all__ = ["FitError", "Trainer", "fit"]
-
-
-def setup_logging(run_dir: Path) -> None:
-    """Log to ``run_dir/log.txt`` and the terminal."""
-    run_dir.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(run_dir / "log.txt")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger("elicit")
-    root.setLevel(logging.INFO)
-    root.handlers = [handler, logging.StreamHandler()]
-
-
-RESULTS = (CHECKPOINT, AVATAR_FILE, LEGACY_FILE, "run.json")  # what marks a folder as holding a fit
-LEFTOVERS = ("log.txt", "previews")  # what a fit writes besides
-
-
-def prepare_run_folder(run_dir: Path, resume: bool, force: bool) -> None:
-    """Check (or, with ``force``, clear) the run folder: a folder that holds an earlier fit is continued only
-    with ``resume`` and overwritten only with ``force``; temporary files of a killed save are removed."""
-    held = [name for name in RESULTS if (run_dir / name).exists()]
-    if force and not resume:
-        for path in (run_dir / name for name in RESULTS + LEFTOVERS):
-            if path.is_dir():
-                shutil.rmtree(path)
-            elif path.exists():
-                path.unlink()
-    elif held and not resume:
-        raise FitError(
-            f"{run_dir} holds an earlier fit ({', '.join(held)}): pass --resume to continue it, "
-            "--force to replace it, or use a new --out"
-        )
-    for stale in run_dir.glob(f".{CHECKPOINT}.*") if run_dir.is_dir() else []:  # a save killed midway
-        stale.unlink()
-
-
-def fit(subject: Subject, cfg: FitConfig, run_dir: str | Path, resume: bool = False, force: bool = False) -> dict:
-    """Fit an avatar to ``subject`` (or the baseline that ``cfg.baseline`` names); returns the run report
-    (also written to ``run_dir/run.json``). See :func:`prepare_run_folder` for ``resume`` and ``force``."""
-    prepare_run_folder(Path(run_dir), resume, force)
-    setup_logging(Path(run_dir))
-    logging.getLogger("elicit.fit").info("thread pools sized to %d CPUs", size_thread_pools())
-    if cfg.baseline == "explicit_texture":
-        from ..baseline import fit_baseline
-
-        return fit_baseline(subject, cfg, Path(run_dir))
-    return Trainer(subject, cfg, run_dir).run(resume)

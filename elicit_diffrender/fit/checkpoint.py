@@ -11,8 +11,8 @@ from pathlib import Path
 
 import torch
 
-from ..errors import ElicitError
-from ..io import read_tensors, write_tensors
+from ..core.errors import ElicitError
+from ..core.io import read_tensors, write_tensors
 
 FORMAT = "elicit-checkpoint/2"
 CHECKPOINT = "checkpoint.safetensors"

@@ -36,8 +36,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..body import PART_NAMES
-from ..cameras import Camera
-from ..field import CanonicalField, grid_points, nearest
+from ..core.cameras import Camera
+from ..model.field import CanonicalField, grid_points, nearest
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured

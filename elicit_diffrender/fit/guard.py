@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..avatar import Avatar
+from ..model.avatar import Avatar
 from .render import PoseRenderer
 from .views import InputView
 

@@ -20,13 +20,13 @@ import torch
 
 from ..body import BodyModel
 from ..body.template import vertex_normals
-from ..config import FitConfig
-from ..encoders import FALLBACK_NAME, EncoderError, load_encoder
-from ..field import CanonicalField
-from ..losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
-from ..sampling import NovelView, crop_window, part_pixels, plan_novel_view
-from ..total_variation import total_variation
+from ..model.encoders import FALLBACK_NAME, EncoderError, load_encoder
+from ..model.field import CanonicalField
+from ..model.losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
+from ..model.total_variation import total_variation
 from .completion import MirrorCompletion
+from .config import FitConfig
+from .hybrid_sampling import NovelView, crop_window, part_pixels, plan_novel_view
 from .regions import GradRegions
 from .render import PoseRenderer
 from .streams import RandomStreams

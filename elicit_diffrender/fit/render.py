@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..avatar import Avatar
-from ..cameras import Camera
-from ..subject import Subject
-from ..volume import BakedWarp
+from ..core.cameras import Camera
+from ..data.subject import Subject
+from ..model.avatar import Avatar
+from ..model.volume import BakedWarp
 from .streams import RandomStreams
 
 SPACE_REFRESH = 50  # steps between observation-space updates while the warp itself is learned

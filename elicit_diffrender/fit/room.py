@@ -24,10 +24,10 @@ from scipy import ndimage
 
 from ..body import PART_NAMES
 from ..body.template import vertex_normals
-from ..cameras import Camera
-from ..field import Room, signed_distance, splat_weights
-from ..mesh_render import MeshRenderer
-from ..subject import Subject
+from ..core.cameras import Camera
+from ..data.mesh_render import MeshRenderer
+from ..data.subject import Subject
+from ..model.field import Room, signed_distance, splat_weights
 
 SLACK = 0.03  # metres added to the measured reach
 MAX_REACH = 0.5  # metres: a mask further than this from the body is not the person's

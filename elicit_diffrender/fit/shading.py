@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..cameras import Camera
+from ..core.cameras import Camera
 
 RATIOS = np.concatenate([[0.0], np.geomspace(0.05, 8.0, 40)])  # candidate key-to-ambient ratios
 DIRECTIONS = 400  # candidate light directions on the sphere, then as many again within REFINE_DEGREES of the best

@@ -13,13 +13,13 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..avatar import AVATAR_FILE, Avatar
-from ..config import FitConfig, config_dict
-from ..device import default_device
-from ..field import grid_points
-from ..io import write_image, write_json
-from ..subject import Subject
+from ..core.device import default_device
+from ..core.io import write_image, write_json
+from ..data.subject import Subject
+from ..model.avatar import AVATAR_FILE, Avatar
+from ..model.field import grid_points
 from .checkpoint import CHECKPOINT, FitError, load_optimizer_state, optimizer_state, read_checkpoint, save_checkpoint
+from .config import FitConfig, config_dict
 from .guard import EmptyRenderGuard
 from .objective import Objective, Terms
 from .render import PoseRenderer

@@ -15,18 +15,17 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..body import PART_NAMES, BodyModel
+from ..body import PART_NAMES
 from ..body.template import template_colors, vertex_normals
-from ..cameras import Camera
-from ..config import FitConfig
-from ..mesh_render import MeshAppearance, MeshRenderer
-from ..rigs import place_cameras, read_rig, ring_cameras, shipped_rig_path
-from ..sampling import body_yaw
-from ..subject import Subject, SubjectError
+from ..core.cameras import Camera
+from ..data.mesh_render import MeshAppearance, MeshRenderer
+from ..data.rigs import body_rotation, place_ring
+from ..data.subject import Subject, SubjectError
 from .completion import visible_vertices
+from .config import FitConfig
+from .hybrid_sampling import body_yaw
 from .shading import Shading, estimate_shading
 
-RING_SIZE = 512  # image size of the shipped ring rig
 PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
 CENTRED_PATCH_P = 0.9  # probability that a patch is centred on the person
 MIN_INPUT_IOU = 0.1  # below this overlap of body and input mask the subject's pose and camera disagree
@@ -66,29 +65,6 @@ def training_poses(subject: Subject, step: int, input_only: bool) -> list[int]:
     if input_only:
         return [idx]
     return [idx] + [i for i in range(0, len(subject.motion), max(1, step)) if i != idx]
-
-
-def body_rotation(body: BodyModel, bone_transforms: np.ndarray) -> np.ndarray:
-    """The posed pelvis's rotation relative to its rest orientation (the body's facing)."""
-    pelvis = body.joint_index(body.semantic["pelvis"])
-    rest = body.pose(body.zero_pose()).bone_transforms[pelvis, :3, :3]
-    return bone_transforms[pelvis, :3, :3] @ rest.T
-
-
-def place_ring(subject: Subject, n: int, size: int) -> list[Camera]:
-    """The shipped ring, centred on the input pose's pelvis, upright for the input camera, facing the body."""
-    body = subject.body
-    posed = body.pose(*subject.motion.frame(subject.input_index))
-    pelvis = body.joint_index(body.semantic["pelvis"])
-    rot_body = body_rotation(body, posed.bone_transforms)
-    up = -subject.cameras[subject.input_camera].R[1]
-    facing = rot_body[:, 2] - (rot_body[:, 2] @ up) * up
-    facing /= np.linalg.norm(facing)
-    place = np.stack([np.cross(up, facing), up, facing], axis=1)
-    cams = read_rig(shipped_rig_path("ring"))
-    if n != len(cams):
-        cams = ring_cameras(n=n)
-    return [c.scaled(size / RING_SIZE) for c in place_cameras(cams, place, posed.bone_transforms[pelvis, :3, 3])]
 
 
 @dataclass

@@ -1,0 +1,350 @@
+"""The ``elicit`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..core.checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
+from ..core.errors import ElicitError, error_line
+from ..fit.config import PRESETS, FitConfig
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (exit code 2), like every other bad input."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _synth(args: argparse.Namespace) -> None:
+    from ..inputs.synth import synthesize
+
+    out = synthesize(args.seed, args.out, motion_name=args.motion, size=args.size, spp=args.spp, force=args.force)
+    print(f"wrote synthetic subject {out} (contact sheet: {out / 'contact_sheet.png'})")
+
+
+def _fit(args: argparse.Namespace) -> None:
+    from ..data.subject import load_subject
+    from ..fit.config import make_config
+    from ..fit.run import fit
+
+    cfg = make_config(args.preset, args.config, args.set)
+    subject = load_subject(args.subject)
+    report = fit(subject, cfg, args.out, resume=args.resume, force=args.force)
+    enc = report["encoder"]["name"] if report["encoder"] else "none"
+    print(
+        f"avatar: {report['avatar']} (encoder: {enc}; perceptual: {report['perceptual']['name']}; "
+        f"{report['seconds']['total']:.0f} s)"
+    )
+
+
+def _render(args: argparse.Namespace) -> None:
+    from ..outputs.video import render_command
+
+    for path in render_command(args.run, args.motion, args.cameras, args.out, args.size, args.samples, args.fps)[-2:]:
+        print(f"wrote {path}")
+
+
+def _export(args: argparse.Namespace) -> None:
+    from ..outputs.export import export_run
+
+    summary = export_run(args.run, args.out, args.motion, args.resolution, args.faces)
+    frames = f", {summary['frames']} frames of {args.motion}" if summary["frames"] else ""
+    print(
+        f"wrote {summary['path']} ({summary['vertices']} vertices, {summary['faces']} faces, "
+        f"{summary['joints']} joints{frames}; {summary['appearance']}; {summary['seconds']:.1f} s)"
+    )
+
+
+def _view(args: argparse.Namespace) -> None:
+    from ..outputs.export import export_run
+    from ..outputs.viewer import write_viewer
+
+    glb = args.source
+    if glb.suffix.lower() != ".glb":
+        glb = Path(export_run(args.source, args.out / "avatar.glb", args.motion)["path"])
+    print(f"wrote {write_viewer(glb, args.out)} (open it in a browser; no server needed)")
+
+
+def _demo(args: argparse.Namespace) -> None:
+    from .demo import run_demo
+
+    summary = run_demo(args.out, overrides=args.set)
+    secs = summary["seconds"]
+    print(
+        f"demo done in {secs['total']:.0f} s (synth {secs['synth']:.0f} s, fit {secs['fit']:.0f} s, "
+        f"render {secs['render']:.0f} s, export {secs['export']:.0f} s)"
+    )
+    for key in ("turntable", "animation", "contact_sheet", "avatar_glb", "viewer"):
+        print(f"  {key}: {summary[key]}")
+
+
+def _batch(args: argparse.Namespace) -> None:
+    from ..fit.config import config_dict, make_config
+    from .batch import parse_steps, run_batch
+
+    steps = parse_steps(args.steps)
+    cfg = make_config(args.preset, args.config, args.set)
+    summary = run_batch(args.inputs, args.out, steps, config_dict(cfg), args.address, args.cpus_per_fit, args.size)
+    failed = [r for r in summary["jobs"] if r["status"] == "failed"]
+    for r in failed:
+        print(f"elicit batch: job {r['name']} failed: {r['error']}", file=sys.stderr)
+    n, counts = len(summary["jobs"]), summary["counts"]
+    print(f"{counts['done']} done, {counts['failed']} failed of {n}; summary: {args.out / 'summary.md'}")
+    if failed:
+        raise ElicitError(f"{len(failed)} of {n} jobs failed (their errors are above)")
+
+
+def _eval(args: argparse.Namespace) -> None:
+    from ..data.subject import load_subject
+    from ..outputs.evaluate import evaluate_run
+
+    m = evaluate_run(args.run, load_subject(args.subject), args.out, args.scale, args.max_views, align=args.align)
+    if "alignment" in m:
+        a = m["alignment"]
+        print(
+            f"aligned {a['fitted_subject']} to the subject: scale {a['scale']:.3f}, vertex error after alignment "
+            f"{100 * a['vertex_error_m']['mean']:.1f} cm mean, {100 * a['vertex_error_m']['max']:.1f} cm max"
+        )
+    for split in ("novel_view", "novel_pose"):
+        if split not in m:
+            continue
+        r = m[split]
+        lp = "null" if r["lpips"] is None else f"{r['lpips']:.3f}"
+        psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
+        ssim = "n/a" if r["ssim"] is None else f"{r['ssim']:.3f}"
+        print(f"{split}: PSNR {psnr}  SSIM {ssim}  LPIPS {lp}  ({r['views']} views)")
+        if "rear" in r and r["rear"]["views"]:
+            print(
+                f"  rear (> {r['rear']['degrees']:.0f} deg from the input): PSNR {r['rear']['psnr']:.2f}  "
+                f"SSIM {r['rear']['ssim']:.3f}  ({r['rear']['views']} views)"
+            )
+    print(f"wrote {args.out}")
+
+
+def _prepare(args: argparse.Namespace) -> None:
+    from ..inputs.prepare import prepare
+
+    r = prepare(
+        args.photo,
+        args.out,
+        args.mask,
+        args.params,
+        args.focal,
+        args.motion,
+        force=args.force,
+        max_megapixels=args.max_megapixels,
+    )
+    kp = r.get("keypoint_error_px")
+    kp_text = f", keypoint error {kp['median']:.1f} px median" if kp else ""
+    print(
+        f"wrote subject {args.out}: silhouette IoU {r['silhouette_iou']:.3f}{kp_text}, {r['seconds']:.0f} s "
+        f"(overlay: {args.out / 'overlay.png'})"
+    )
+
+
+def _import(args: argparse.Namespace) -> None:
+    from ..inputs.importers import import_elicit_wild, import_zju
+
+    if args.layout == "elicit-wild":
+        out = import_elicit_wild(args.source, args.out, args.motion, args.smpl, args.force)
+    else:
+        if not args.frames:
+            raise ElicitError("import zju needs --frames (the frame ids to import; the first is the input)")
+        out = import_zju(args.source, args.out, args.frames, args.input_camera, args.smpl, args.force)
+    print(f"wrote subject {out}")
+
+
+def _rigs(args: argparse.Namespace) -> None:
+    from ..data.rigs import orbit_cameras, ring_cameras, write_rig
+
+    if args.kind == "ring":
+        cams = ring_cameras(args.n, args.radius, args.elevation, tuple(args.look_at), args.focal, args.size, args.size)
+    else:
+        cams = orbit_cameras(
+            args.n,
+            radius=args.radius,
+            elevation_deg=args.elevation,
+            look_at_point=tuple(args.look_at),
+            focal=args.focal,
+            width=args.size,
+            height=args.size,
+        )
+    comment = (
+        f"elicit {args.kind}: {args.n} cameras, radius {args.radius} m, elevation {args.elevation} deg, "
+        f"{args.size}x{args.size}, f = {args.focal} px"
+    )
+    print(write_rig(args.out, cams, comment))
+
+
+def _weights(args: argparse.Namespace) -> None:
+    from ..core import weights
+
+    if args.action == "list":
+        found = weights.on_disk()
+        if not found:
+            print("no CLIP weights on disk: fits use the mirror completion (weights-free fallback)")
+        for w in found:
+            print(f"{w.model}/{w.tag}  {w.megabytes:.0f} MB  {w.path}")
+        return
+    path = weights.fetch(args.model, args.tag, args.endpoint)
+    print(
+        f"fetched {args.model}/{args.tag} into {path}; fits with clip_model={args.model} "
+        f"clip_pretrained={args.tag} now use it"
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="elicit", description="ELICIT: one-shot animatable avatars from a single photo")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("synth", help="write a synthetic clothed subject (elicit-subject/1)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--motion", default="walk_in_place", help="built-in target motion")
+    s.add_argument("--size", type=positive_int, default=512, help="image size in pixels")
+    s.add_argument("--spp", type=positive_int, default=32, help="path-tracing samples per pixel")
+    s.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    s.set_defaults(func=_synth)
+
+    f = sub.add_parser("fit", help="fit an avatar to a subject (two-stage ELICIT optimisation)")
+    f.add_argument("subject", type=Path, help="an elicit-subject/1 folder")
+    f.add_argument("--out", type=Path, required=True, help="run folder (checkpoint, previews, avatar, run.json)")
+    f.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
+    f.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
+    f.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key (or ablation=NAME)"
+    )
+    f.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    f.add_argument("--force", action="store_true", help="replace an earlier fit in the run folder")
+    f.set_defaults(func=_fit)
+
+    v = sub.add_parser("render", help="free-view / animation video of a fitted avatar, with a contact sheet")
+    v.add_argument("run", type=Path, help="a run folder (or its avatar file)")
+    v.add_argument(
+        "--motion", default=None, help="built-in motion name or motion .npz (default: the subject's, or rest)"
+    )
+    v.add_argument("--cameras", default="orbit", help="orbit, ring, input, a rig .xml, or a subject folder")
+    v.add_argument("--out", type=Path, required=True, help="OUT.mp4, OUT.gif or a folder for PNG frames")
+    v.add_argument("--size", type=positive_int, default=256, help="image size in pixels")
+    v.add_argument("--samples", type=positive_int, default=64, help="samples per ray")
+    v.add_argument("--fps", type=positive_float, default=30.0)
+    v.set_defaults(func=_render)
+
+    x = sub.add_parser("export", help="the avatar as an animated glTF binary (.glb): mesh, colours, skeleton, motion")
+    x.add_argument("run", type=Path, help="a run folder (or its avatar file)")
+    x.add_argument("--out", type=Path, required=True, help="OUT.glb")
+    x.add_argument(
+        "--motion", default="walk_in_place", help="built-in motion name, motion .npz, or none (default: walk_in_place)"
+    )
+    x.add_argument(
+        "--resolution", type=positive_float, default=None, help="marching-cubes voxel, metres (default: the avatar's)"
+    )
+    x.add_argument("--faces", type=positive_int, default=None, help="decimate to about this many faces")
+    x.set_defaults(func=_export)
+
+    page = sub.add_parser("view", help="a self-contained web page that shows the avatar and plays its animation")
+    page.add_argument("source", type=Path, help="a run folder (exported first) or a .glb")
+    page.add_argument("--out", type=Path, required=True, help="folder for index.html and avatar.glb")
+    page.add_argument("--motion", default="walk_in_place", help="motion to export when SOURCE is a run folder")
+    page.set_defaults(func=_view)
+
+    d = sub.add_parser("demo", help="synthesise the default subject, fit it (cpu-fast) and render videos")
+    d.add_argument("--out", type=Path, default=Path("elicit-demo"))
+    d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one fit config key")
+    d.set_defaults(func=_demo)
+
+    b = sub.add_parser("batch", help="many avatars on Ray: prepare, fit, render and export each photo or subject")
+    b.add_argument("inputs", type=Path, nargs="+", help="photos, subject folders, or folders of them")
+    b.add_argument("--out", type=Path, required=True, help="batch folder: one job folder per input, summary.md")
+    b.add_argument("--steps", default="prepare,fit,render,export", help="comma-separated steps to run")
+    b.add_argument("--preset", default="cpu-fast", help="cpu-fast or paper")
+    b.add_argument("--config", type=Path, default=None, help="a TOML file of config keys")
+    b.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key (or ablation=NAME)"
+    )
+    b.add_argument(
+        "--address", default=None, help="a Ray cluster (auto, HOST:PORT or ray://HOST:PORT); default: local Ray"
+    )
+    b.add_argument("--cpus-per-fit", type=positive_int, default=1, help="CPUs each job's threads use (default 1)")
+    b.add_argument("--size", type=positive_int, default=256, help="video and contact-sheet size in pixels")
+    b.set_defaults(func=_batch)
+
+    e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
+    e.add_argument("run", type=Path)
+    e.add_argument("subject", type=Path)
+    e.add_argument("--out", type=Path, required=True, help="metrics.json (grids are written beside it)")
+    e.add_argument("--scale", type=unit_fraction, default=0.5, help="evaluation image scale, in (0, 1]")
+    e.add_argument("--max-views", type=positive_int, default=None, help="evaluate at most this many views per split")
+    e.add_argument(
+        "--align",
+        action="store_true",
+        help="the run was fitted on another subject of this person (e.g. from prepare): align the bodies (Umeyama)",
+    )
+    e.set_defaults(func=_eval)
+
+    q = sub.add_parser("prepare", help="turn one photo into a subject: mask, camera and an Anny body fit")
+    q.add_argument("photo", type=Path)
+    q.add_argument("--out", type=Path, required=True)
+    q.add_argument("--mask", type=Path, default=None, help="person mask, 1-, 8- or 16-bit (above half is the person)")
+    q.add_argument("--params", type=Path, default=None, help="ELICIT/CLIFF gt_params.npz (focal_l, pred_joints)")
+    q.add_argument("--focal", type=positive_float, default=None, help="focal length in pixels")
+    q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
+    q.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    q.add_argument(
+        "--max-megapixels", type=positive_float, default=MAX_MEGAPIXELS, help="refuse larger photos (default 40)"
+    )
+    q.set_defaults(func=_prepare)
+
+    i = sub.add_parser("import", help="import ELICIT's in-the-wild layout or ZJU-MoCap as a subject")
+    i.add_argument("layout", choices=["elicit-wild", "zju"])
+    i.add_argument("source", type=Path)
+    i.add_argument("--out", type=Path, required=True)
+    i.add_argument("--motion", default="walk_in_place", help="elicit-wild: built-in target motion")
+    i.add_argument("--smpl", default=None, help="SMPL model file or folder (else ELICIT_SMPL_DIR)")
+    i.add_argument("--frames", type=int, nargs="*", default=None, help="zju: frame ids")
+    i.add_argument("--input-camera", type=int, default=0, help="zju: index of the input camera")
+    i.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    i.set_defaults(func=_import)
+
+    w = sub.add_parser("weights", help="CLIP weights: fetch them (needs the network) or list what is on disk")
+    w.add_argument("action", choices=["fetch", "list"])
+    clip = {name: PRESETS[name].get("clip_model", FitConfig.clip_model) for name in PRESETS}
+    w.add_argument("model", nargs="?", default=FitConfig.clip_model, help=f"open_clip model (presets: {clip})")
+    w.add_argument("tag", nargs="?", default=FitConfig.clip_pretrained, help="open_clip pretrained tag")
+    w.add_argument("--endpoint", default=None, help="a Hugging Face hub mirror (as $HF_ENDPOINT)")
+    w.set_defaults(func=_weights)
+
+    r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
+    r.add_argument("kind", choices=["ring", "orbit"])
+    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--n", type=positive_int, default=23, help="number of cameras (orbit: frames)")
+    r.add_argument("--radius", type=positive_float, default=3.0)
+    r.add_argument("--elevation", type=float, default=0.0, help="degrees")
+    r.add_argument("--look-at", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    r.add_argument("--focal", type=positive_float, default=650.0, help="pixels")
+    r.add_argument("--size", type=positive_int, default=512)
+    r.set_defaults(func=_rigs)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except ElicitError as exc:
+        print(f"elicit {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a read-only folder, a full disk: nothing half-written is left in place
+        print(f"elicit {args.command}: error: {error_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"elicit {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

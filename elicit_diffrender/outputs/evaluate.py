@@ -1,0 +1,268 @@
+"""``elicit eval``: novel-view and novel-pose metrics in the Neural Body protocol.
+
+* novel view: the input frame from every camera except the input one; ``rear`` summarises the
+  cameras more than ``REAR_DEGREES`` from the input camera around the body's vertical axis (the
+  side a single photo never shows);
+* novel pose: the input camera at every other frame.
+
+A run fitted on another subject of the same person (the photo path: ``elicit prepare`` on a
+synthetic subject's input image) is evaluated with ``align``: a single photo fixes neither scale
+nor depth, so the run's frame is mapped onto the ground truth's by the similarity (rotation,
+translation, scale; Umeyama) that best maps its input-pose body's vertices onto the ground-truth
+body's (both Anny meshes, so vertices correspond). The alignment is for evaluation only; the pose
+error that remains counts. Only the novel-view split is evaluated then (the fitted subject has its
+own motion).
+
+PSNR is taken over the pixels inside the projected 3D box of the posed body (padded by
+``BOX_PADDING`` metres on every side: the convex hull of its 8 projected corners); SSIM
+(scikit-image) over that region's bounding rectangle; LPIPS(VGG) when its weights are available,
+otherwise ``null`` with the reason. Renders and ground truth are compared on black.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from skimage.draw import polygon
+from skimage.metrics import structural_similarity
+from tqdm import tqdm
+
+from ..core.cameras import Camera
+from ..core.io import write_image, write_json
+from ..data.subject import Subject
+
+BOX_PADDING = 0.05
+REAR_DEGREES = 120.0
+GRID_ROWS = 8  # views in each split's grid, evenly spaced through the split
+
+
+def angle_around_body(camera: Camera, reference: Camera, centre: np.ndarray, up: np.ndarray) -> float:
+    """Degrees between two cameras' directions from ``centre``, seen along the ``up`` axis (0..180)."""
+    dirs = []
+    for cam in (camera, reference):
+        d = cam.center - centre
+        d = d - (d @ up) * up
+        dirs.append(d / max(np.linalg.norm(d), 1e-9))
+    return float(np.degrees(np.arccos(np.clip(dirs[0] @ dirs[1], -1.0, 1.0))))
+
+
+def box_mask(camera: Camera, vertices: np.ndarray, padding: float = BOX_PADDING) -> np.ndarray:
+    """Pixels inside the projection of the body's padded axis-aligned 3D box."""
+    lo, hi = vertices.min(0) - padding, vertices.max(0) + padding
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    uv, z = camera.project(corners)
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    if (z <= 0).any():
+        mask[:] = True
+        return mask
+    from scipy.spatial import ConvexHull
+
+    hull = uv[ConvexHull(uv).vertices]
+    rr, cc = polygon(hull[:, 1] - 0.5, hull[:, 0] - 0.5, shape=mask.shape)
+    mask[rr, cc] = True
+    return mask
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    err = ((a[mask] - b[mask]) ** 2).mean()
+    return float(10 * np.log10(1.0 / max(err, 1e-10)))
+
+
+def ssim_in_rect(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    ys, xs = np.nonzero(mask)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    win = min(7, y1 - y0, x1 - x0)
+    win -= 1 - win % 2
+    return float(
+        structural_similarity(a[y0:y1, x0:x1], b[y0:y1, x0:x1], channel_axis=-1, data_range=1.0, win_size=max(3, win))
+    )
+
+
+class Lpips:
+    """LPIPS(VGG) on the bounding rectangle of the evaluated region, or None without its weights."""
+
+    def __init__(self) -> None:
+        from ..model.losses import load_lpips
+
+        self.model, self.reason = load_lpips()
+
+    def __call__(self, a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | None:
+        if self.model is None:
+            return None
+        import torch
+
+        ys, xs = np.nonzero(mask)
+        crop = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        t = [torch.as_tensor(x[crop]).permute(2, 0, 1)[None].float() * 2 - 1 for x in (a, b)]
+        with torch.no_grad():
+            return float(self.model(*t))
+
+
+Renderer = Callable[[Camera, int], np.ndarray]
+SPLITS = ("novel_view", "novel_pose")
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity ``dst ~ s R src + t`` of least squares between corresponding (N, 3) points."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rot = u @ np.diag(d) @ vt
+    scale = float((sig * d).sum() / (a**2).sum(1).mean())
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def camera_in_frame(camera: Camera, scale: float, rot: np.ndarray, transl: np.ndarray) -> Camera:
+    """``camera`` (of the frame ``x' = s R x + t``) as a camera of the frame of ``x``: same image."""
+    return Camera(
+        camera.K.copy(),
+        camera.R @ rot,
+        (camera.R @ transl + camera.T) / scale,
+        camera.width,
+        camera.height,
+        camera.name,
+    )
+
+
+def evaluate(
+    subject: Subject,
+    render: Renderer,
+    out_dir: str | Path,
+    scale: float = 0.5,
+    max_views: int | None = None,
+    splits: tuple[str, ...] = SPLITS,
+) -> dict:
+    """Metrics of ``render(camera, frame_index) -> (H, W, 3)`` against the subject's ground truth."""
+    out_dir = Path(out_dir)
+    lp = Lpips()
+    body = subject.body
+    views_of = {
+        "novel_view": [
+            (c, subject.input_frame)
+            for c in subject.cameras
+            if c != subject.input_camera and subject.has_view(c, subject.input_frame)
+        ],
+        "novel_pose": [
+            (subject.input_camera, int(f))
+            for f in subject.motion.frame_ids
+            if f != subject.input_frame and subject.has_view(subject.input_camera, int(f))
+        ],
+    }
+    result: dict = {"box_padding_m": BOX_PADDING, "scale": scale, "lpips_reason": lp.reason or None}
+    for split, views in views_of.items():
+        if split not in splits:
+            continue
+        if max_views is not None and len(views) > max_views:
+            views = [views[i] for i in np.linspace(0, len(views) - 1, max_views).astype(int)]
+        rows, tiles = [], []
+        for cam_name, frame in tqdm(views, desc=split, unit="view", leave=False):
+            cam = subject.cameras[cam_name]
+            small = cam.scaled(scale)
+            gt = subject.image(cam_name, frame) * subject.mask(cam_name, frame)[..., None]
+            gt = _resize(gt, (small.height, small.width))
+            index = int(np.nonzero(subject.motion.frame_ids == frame)[0][0])
+            pred = np.clip(render(small, index), 0.0, 1.0)
+            posed = body.pose(*subject.motion.frame(index)).vertices
+            mask = box_mask(small, posed)
+            row = {
+                "camera": cam_name,
+                "frame": frame,
+                "psnr": psnr(pred, gt, mask),
+                "ssim": ssim_in_rect(pred, gt, mask),
+                "lpips": lp(pred, gt, mask),
+            }
+            if split == "novel_view":
+                ref = subject.cameras[subject.input_camera]
+                row["degrees_from_input"] = angle_around_body(cam, ref, posed.mean(0), -ref.R[1])
+            rows.append(row)
+            err = np.abs(pred - gt).mean(-1, keepdims=True)
+            tiles.append(np.concatenate([gt, pred, np.clip(err * 3, 0, 1).repeat(3, -1)], 1))
+        mean = {
+            k: (float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None)
+            for k in ("psnr", "ssim", "lpips")
+        }
+        result[split] = {**mean, "views": len(rows), "per_view": rows}
+        if split == "novel_view":
+            rear = [r for r in rows if r["degrees_from_input"] > REAR_DEGREES]
+            result[split]["rear"] = {
+                "degrees": REAR_DEGREES,
+                "views": len(rear),
+                "psnr": float(np.mean([r["psnr"] for r in rear])) if rear else None,
+                "ssim": float(np.mean([r["ssim"] for r in rear])) if rear else None,
+            }
+        if tiles:
+            shown = np.unique(np.linspace(0, len(tiles) - 1, GRID_ROWS).round().astype(int))  # all round, back included
+            grid = np.concatenate([tiles[i] for i in shown], 0)
+            write_image(out_dir / f"{split}_grid.png", grid)
+    return result
+
+
+def _resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.as_tensor(image).permute(2, 0, 1)[None]
+    return F.interpolate(t, size=size, mode="area")[0].permute(1, 2, 0).numpy()
+
+
+def evaluate_run(
+    run: str | Path,
+    subject: Subject,
+    out: str | Path,
+    scale: float = 0.5,
+    max_views: int | None = None,
+    n_samples: int = 64,
+    align: bool = False,
+) -> dict:
+    """Evaluate a fitted avatar (``run`` folder) and write ``metrics.json`` + grids next to ``out``;
+    with ``align``, a run fitted on another subject of the same person (see the module's docstring)."""
+    import json
+
+    from ..data.subject import SubjectError, load_subject
+    from ..model.load import load_avatar
+
+    run = Path(run)
+    avatar = load_avatar(run)
+    report = json.loads((run / "run.json").read_text()) if (run / "run.json").is_file() else {}
+    extra: dict = {}
+    if align:
+        if not report.get("subject"):
+            raise SubjectError(f"{run}: --align needs the run's run.json, which names the subject it was fitted on")
+        fitted = load_subject(report["subject"])
+        pose = fitted.motion.frame(fitted.input_index)
+        src = fitted.body.pose(*pose).vertices
+        dst = subject.body.pose(*subject.motion.frame(subject.input_index)).vertices
+        if src.shape != dst.shape:
+            raise SubjectError(
+                f"{report['subject']}: its body has {len(src)} vertices and {subject.root}'s {len(dst)}; --align needs "
+                "the same body model for both"
+            )
+        sim = umeyama(src, dst)
+        residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
+        extra["alignment"] = {
+            "fitted_subject": str(report["subject"]),
+            "scale": sim[0],
+            "vertex_error_m": {"mean": float(residual.mean()), "max": float(residual.max())},
+        }
+
+        def render(camera: Camera, index: int) -> np.ndarray:
+            return avatar.render_pose(camera_in_frame(camera, *sim), *pose, n_samples)["rgb"]
+
+        splits: tuple[str, ...] = ("novel_view",)
+    else:
+
+        def render(camera: Camera, index: int) -> np.ndarray:
+            return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)["rgb"]
+
+        splits = SPLITS
+    out = Path(out)
+    metrics = evaluate(subject, render, out.parent, scale, max_views, splits)
+    metrics.update(extra)
+    metrics["encoder"] = (report.get("encoder") or {}).get("name")
+    metrics["fit_seconds"] = (report.get("seconds") or {}).get("total")
+    write_json(out, metrics)
+    return metrics

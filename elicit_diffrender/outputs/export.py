@@ -1,0 +1,299 @@
+"""An avatar as an animated glTF binary (``.glb``): mesh, colours, skeleton, skin weights and a motion.
+
+* Geometry: marching cubes (scikit-image) of the canonical density times the motion weights'
+  foreground likelihood (density outside every bone's reach is not meshed) at ``SURFACE_DENSITY``: with
+  the renderer's ``alpha = fg (1 - exp(-sigma delta / voxel))`` a ray is half opaque after 1.5 voxels of
+  that density. Against the volume render's ``alpha > 0.5`` silhouette at three poses this level gave
+  IoU 0.93-0.97 on the fitted demo avatar and 0.92-0.96 on a small test fit (0.3: 0.89-0.96; 0.8:
+  0.89-0.98). Only components with at least ``MIN_COMPONENT`` of the largest one's faces are kept
+  (floaters go); ``faces`` decimates (quadric).
+* Appearance: the canonical colour grid sampled at the vertices, as glTF vertex colours (``COLOR_0``,
+  linear as glTF wants them: the grid holds the photos' sRGB values, converted); no UV texture.
+* Rig: one glTF joint per bone of the avatar's reduced skeleton, at its canonical (rest) transform,
+  with inverse bind matrices; per vertex the 4 largest motion weights, normalised (``JOINTS_0``,
+  ``WEIGHTS_0``). glTF skinning, ``v' = sum_j w_j J_j(t) IBM_j v``, is then the avatar's forward LBS,
+  since ``J_j(t)`` is the bone's world transform at time ``t`` and ``IBM_j`` its canonical inverse.
+* Motion: per frame and joint, the local (parent-relative) rotation and translation, as one glTF
+  animation with linear samplers; a viewer plays it at the motion's frame rate.
+
+Axes: glTF is y-up, right-handed, metres, like the project's world frame, so no conversion is needed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from ..core.errors import ElicitError
+from ..core.io import atomic_write
+from ..data.motions import Motion, load_motion
+from ..model.avatar import Avatar, sample_grid
+from ..model.field import grid_points
+
+MIN_COMPONENT = 0.02  # keep mesh components with at least this share of the largest one's faces
+SURFACE_DENSITY = 0.45  # marching-cubes level, density per voxel of the avatar's grid
+MAX_JOINTS_PER_VERTEX = 4
+
+
+class ExportError(ElicitError):
+    """The avatar cannot be exported (nothing opaque, a motion that does not fit the body)."""
+
+
+@dataclass
+class AvatarMesh:
+    """The canonical surface of an avatar, with its colours and skinning."""
+
+    vertices: np.ndarray  # (V, 3) float32, canonical space, metres
+    faces: np.ndarray  # (F, 3) int
+    colors: np.ndarray  # (V, 3) float32 in [0, 1], linear (glTF's COLOR_0)
+    joints: np.ndarray  # (V, 4) uint16 bone indices
+    weights: np.ndarray  # (V, 4) float32, rows sum to 1
+
+
+def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int | None = None) -> AvatarMesh:
+    """The avatar's canonical surface (see the module docstring). ``resolution``: marching-cubes voxel in
+    metres (default: the avatar's grid); ``faces``: decimate to about this many faces."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    f = avatar.field
+    box = f.box.detach().cpu().double()
+    voxel = float(resolution or f.voxel_size)
+    shape = tuple(max(2, int(math.ceil(float(e) / voxel)) + 1) for e in (box[1] - box[0]))
+    nodes = grid_points(box, shape).reshape(-1, 3).float()
+    with torch.no_grad():
+        sigma = sample_grid(f.activated_density()[None].cpu(), f.box.cpu(), nodes)[:, 0]
+        fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
+    volume = (sigma * avatar.foreground(fg)).reshape(shape).numpy()
+    level = SURFACE_DENSITY
+    if volume.max() <= level:
+        raise ExportError(f"the avatar has no opaque region to mesh (its density never reaches {level})")
+    spacing = tuple(float(box[1, a] - box[0, a]) / (shape[a] - 1) for a in range(3))
+    verts, tris, _, _ = marching_cubes(volume, level=level, spacing=spacing)
+    mesh = trimesh.Trimesh(verts + box[0].numpy(), tris[:, ::-1], process=True)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) > 1:
+        largest = max(len(p.faces) for p in parts)
+        mesh = trimesh.util.concatenate([p for p in parts if len(p.faces) >= MIN_COMPONENT * largest])
+    if faces is not None and len(mesh.faces) > faces:
+        mesh = mesh.simplify_quadric_decimation(face_count=int(faces))
+    v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+    with torch.no_grad():
+        srgb = torch.sigmoid(sample_grid(f.color.detach().permute(3, 0, 1, 2).cpu(), f.box.cpu(), v)).numpy()
+        w = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), v).numpy()
+    colors = srgb_to_linear(srgb)
+    top = np.argsort(-w, axis=1)[:, :MAX_JOINTS_PER_VERTEX]
+    tw = np.take_along_axis(w, top, 1)
+    tw = tw / np.maximum(tw.sum(1, keepdims=True), 1e-8)
+    return AvatarMesh(
+        np.asarray(mesh.vertices, dtype=np.float32),
+        np.asarray(mesh.faces, dtype=np.int64),
+        colors.astype(np.float32),
+        top.astype(np.uint16),
+        tw.astype(np.float32),
+    )
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] (the photos' and the renders' colours) to linear ones (glTF's ``COLOR_0``)."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def local_transforms(world: np.ndarray, parents: list[int]) -> np.ndarray:
+    """(..., B, 4, 4) parent-relative transforms of (..., B, 4, 4) world transforms."""
+    local = world.copy()
+    for b, p in enumerate(parents):
+        if p >= 0:
+            local[..., b, :, :] = np.linalg.inv(world[..., p, :, :]) @ world[..., b, :, :]
+    return local
+
+
+def _quaternions(mats: np.ndarray) -> np.ndarray:
+    """(N, 4) x, y, z, w quaternions of (N, 4, 4) rigid matrices, sign-continuous along N."""
+    q = Rotation.from_matrix(mats[:, :3, :3]).as_quat()
+    for i in range(1, len(q)):
+        if np.dot(q[i], q[i - 1]) < 0:
+            q[i] = -q[i]
+    return q
+
+
+class _Buffer:
+    """The GLB binary chunk, with its buffer views and accessors."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def add(self, array: np.ndarray, component: int, kind: str, target: int | None = None, bounds: bool = False) -> int:
+        while len(self.data) % 4:
+            self.data.append(0)
+        raw = np.ascontiguousarray(array).tobytes()
+        view = {"buffer": 0, "byteOffset": len(self.data), "byteLength": len(raw)}
+        if target is not None:
+            view["target"] = target
+        self.data += raw
+        self.views.append(view)
+        acc = {
+            "bufferView": len(self.views) - 1,
+            "componentType": component,
+            "count": int(array.shape[0]),
+            "type": kind,
+        }
+        if bounds:
+            flat = array.reshape(array.shape[0], -1)
+            acc["min"] = flat.min(0).tolist()
+            acc["max"] = flat.max(0).tolist()
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+
+FLOAT, UINT16, UINT32 = 5126, 5123, 5125
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+
+
+def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: str = "avatar") -> tuple[dict, bytes]:
+    """The glTF JSON and binary chunk of an avatar mesh with its skeleton and (optionally) a motion."""
+    buf = _Buffer()
+    rest = avatar.canonical_bones.detach().cpu().double().numpy()  # (B, 4, 4) world, canonical pose
+    parents = list(avatar.parents)
+    n_bones = len(parents)
+    pos = buf.add(mesh.vertices.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER, bounds=True)
+    col = buf.add(mesh.colors.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER)
+    jnt = buf.add(mesh.joints.astype(np.uint16), UINT16, "VEC4", ARRAY_BUFFER)
+    wgt = buf.add(mesh.weights.astype(np.float32), FLOAT, "VEC4", ARRAY_BUFFER)
+    idx = buf.add(mesh.faces.astype(np.uint32).reshape(-1), UINT32, "SCALAR", ELEMENT_ARRAY_BUFFER)
+    ibm = np.linalg.inv(rest).astype(np.float32)
+    ibm_acc = buf.add(np.ascontiguousarray(ibm.transpose(0, 2, 1)).reshape(n_bones, 16), FLOAT, "MAT4")
+
+    local_rest = local_transforms(rest, parents)
+    nodes: list[dict] = [{"name": name, "mesh": 0, "skin": 0}]
+    rest_rotations = Rotation.from_matrix(local_rest[:, :3, :3]).as_quat()
+    for b in range(n_bones):
+        node = {
+            "name": avatar.reduced_joints[b],
+            "translation": local_rest[b, :3, 3].tolist(),
+            "rotation": rest_rotations[b].tolist(),
+        }
+        children = [1 + c for c, p in enumerate(parents) if p == b]
+        if children:
+            node["children"] = children
+        nodes.append(node)
+    roots = [1 + b for b, p in enumerate(parents) if p < 0]
+    doc: dict = {
+        "asset": {"version": "2.0", "generator": "elicit-diffrender"},
+        "scene": 0,
+        "scenes": [{"nodes": [0, *roots]}],
+        "nodes": nodes,
+        "meshes": [
+            {
+                "name": name,
+                "primitives": [
+                    {
+                        "attributes": {"POSITION": pos, "COLOR_0": col, "JOINTS_0": jnt, "WEIGHTS_0": wgt},
+                        "indices": idx,
+                        "material": 0,
+                    }
+                ],
+            }
+        ],
+        "materials": [
+            {
+                "name": "vertex colour",
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [1, 1, 1, 1],
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 1.0,
+                },
+                "doubleSided": True,
+            }
+        ],
+        "skins": [{"joints": [1 + b for b in range(n_bones)], "inverseBindMatrices": ibm_acc, "skeleton": roots[0]}],
+    }
+    if motion is not None:
+        world = np.stack(
+            [avatar.bone_transforms(*motion.frame(i)).detach().cpu().double().numpy() for i in range(len(motion))]
+        )
+        local = local_transforms(world, parents)  # (T, B, 4, 4)
+        times = (np.arange(len(motion), dtype=np.float32) / np.float32(motion.fps)).astype(np.float32)
+        t_acc = buf.add(times, FLOAT, "SCALAR", bounds=True)
+        channels, samplers = [], []
+        for b in range(n_bones):
+            trans = local[:, b, :3, 3].astype(np.float32)
+            rot = _quaternions(local[:, b]).astype(np.float32)
+            for path, values, kind in (("translation", trans, "VEC3"), ("rotation", rot, "VEC4")):
+                samplers.append({"input": t_acc, "output": buf.add(values, FLOAT, kind), "interpolation": "LINEAR"})
+                channels.append({"sampler": len(samplers) - 1, "target": {"node": 1 + b, "path": path}})
+        doc["animations"] = [{"name": motion.name or "motion", "channels": channels, "samplers": samplers}]
+    while len(buf.data) % 4:
+        buf.data.append(0)
+    doc["buffers"] = [{"byteLength": len(buf.data)}]
+    doc["bufferViews"] = buf.views
+    doc["accessors"] = buf.accessors
+    return doc, bytes(buf.data)
+
+
+def glb_bytes(doc: dict, binary: bytes) -> bytes:
+    """A GLB container: header, JSON chunk (space-padded), BIN chunk (zero-padded)."""
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return (
+        struct.pack("<III", 0x46546C67, 2, total)
+        + struct.pack("<II", len(js), 0x4E4F534A)
+        + js
+        + struct.pack("<II", len(binary), 0x004E4942)
+        + binary
+    )
+
+
+def export_glb(
+    avatar: Avatar,
+    out: str | Path,
+    motion: Motion | None = None,
+    resolution: float | None = None,
+    faces: int | None = None,
+) -> dict:
+    """Write ``out`` (a .glb) and return a summary: vertices, faces, joints, frames, seconds."""
+    start = time.perf_counter()
+    if Path(out).suffix.lower() != ".glb":
+        raise ExportError(f"{out}: the output must be a .glb file")
+    mesh = canonical_mesh(avatar, resolution, faces)
+    doc, binary = glb_document(avatar, mesh, motion)
+    data = glb_bytes(doc, binary)
+    path = atomic_write(Path(out), lambda tmp: tmp.write_bytes(data))
+    return {
+        "path": str(path),
+        "vertices": int(len(mesh.vertices)),
+        "faces": int(len(mesh.faces)),
+        "joints": len(avatar.parents),
+        "frames": 0 if motion is None else len(motion),
+        "appearance": "vertex colours (COLOR_0)",
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def export_run(
+    run: str | Path,
+    out: str | Path,
+    motion: str = "walk_in_place",
+    resolution: float | None = None,
+    faces: int | None = None,
+) -> dict:
+    """:func:`export_glb` of a run folder's (or avatar file's) avatar, with a motion by name or file
+    (``"none"``: no animation); the explicit-texture baseline has no field to mesh and is refused."""
+    from ..model.load import load_avatar
+
+    avatar = load_avatar(run)
+    if not isinstance(avatar, Avatar):
+        raise ExportError(f"{run}: the explicit-texture baseline has no radiance field to export")
+    return export_glb(avatar, out, None if motion == "none" else load_motion(motion, avatar.body), resolution, faces)
