@@ -15,36 +15,23 @@ Finished fits are reused, so an interrupted run resumes.
 from __future__ import annotations
 
 import argparse
-import io
-import subprocess
 import sys
-import tarfile
 import time
 from pathlib import Path
 
-from elicit_diffrender.apps.benchtools import fit_and_eval, markdown_table, run, worker_env, write_report
+from elicit_diffrender.apps.benchtools import (
+    elicit_command,
+    export_commit,
+    fit_and_eval,
+    markdown_table,
+    run,
+    worker_env,
+    write_report,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = "cef11e6"  # main on 2026-12-03, before the baked warp and the fused optimiser
 TOLERANCE = {"psnr": 0.1, "ssim": 0.002, "novel_pose_psnr": 0.2}
-
-
-def export_commit(commit: str, dest: Path) -> str:
-    """The commit's tree in ``dest`` (with the package's ``kernels`` and ``scenes`` linked in); its full hash."""
-    full = subprocess.run(["git", "rev-parse", commit], cwd=ROOT, capture_output=True, text=True, check=True)
-    sha = full.stdout.strip()
-    stamp = dest / ".commit"
-    if not (stamp.is_file() and stamp.read_text() == sha):
-        archive = subprocess.run(["git", "archive", sha], cwd=ROOT, capture_output=True, check=True).stdout
-        dest.mkdir(parents=True, exist_ok=True)
-        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-            tar.extractall(dest, filter="data")
-        for name in ("kernels", "scenes"):
-            link = dest / "elicit_diffrender" / name
-            if not link.exists():
-                link.symlink_to(Path("..") / name)
-        stamp.write_text(sha)
-    return sha
 
 
 def quality(metrics: dict, run_dir: Path) -> dict:
@@ -78,7 +65,7 @@ def main() -> int:
     for name, code in (("reference", args.work / "reference_code"), ("this checkout", ROOT)):
         side_env = {**env, "PYTHONPATH": str(code)}
         run_dir = args.work / name.replace(" ", "_")
-        results[name] = quality(fit_and_eval(elicit, subject, run_dir, [], side_env), run_dir)
+        results[name] = quality(fit_and_eval(elicit_command(code), subject, run_dir, [], side_env), run_dir)
     ref, new = results["reference"], results["this checkout"]
     ratio = new["fit_seconds"] / ref["fit_seconds"]
     delta = {k: new[k] - ref[k] for k in TOLERANCE}

@@ -76,7 +76,10 @@ def test_render_and_eval_commands(tmp_path):
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["novel_view"]["views"] == 2 and m["novel_view"]["psnr"] > 5 and m["novel_view"]["lpips"] is None
     assert m["encoder"] == "mirror completion (weights-free fallback)" and m["lpips_reason"]
-    assert set(m["novel_view"]["rear"]) == {"degrees", "views", "psnr", "ssim"}
+    solid = {"silhouette_iou", "hole_fraction", "spill"}
+    assert set(m["novel_view"]["rear"]) == {"degrees", "views", "psnr", "ssim", "lpips"} | solid
+    assert set(m["novel_view"]["side"]) == set(m["novel_view"]["rear"]) and solid <= set(m["novel_view"])
+    assert all(0.0 <= m["novel_view"][k] <= 1.0 for k in ("silhouette_iou", "hole_fraction"))
     # Aligned to itself (the photo path's evaluation): the identity, and the same novel-view images.
     aligned = tmp_path / "aligned.json"
     assert main(["eval", str(run), str(subject), "--out", str(aligned), "--max-views", "2", "--align"]) == 0

@@ -41,7 +41,8 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     seen = verts[:, 2] > centre_z[parts]  # the front half of every part
     box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
     field = CanonicalField(box, 0.04)
-    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, field.body_distance(verts, normals), margin=0.05)
+    sdf = field.body_distance(verts, normals)
+    pairs = MirrorCompletion.build(field, verts, normals, parts, seen, sdf, margin=0.05, rule="mirror")
     assert len(pairs) == pairs.unseen > 0  # every part has seen vertices, so every unseen cell has a source
     assert sum(pairs.rule_counts.values()) == len(pairs) and pairs.rule_counts["nearest seen"] == 0
     assert torch.equal(pairs.gains, torch.ones(len(pairs)))  # no light given: nothing is relit
@@ -125,7 +126,7 @@ def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):
     with torch.no_grad():
         field.color.fill_(1.0)  # everything sigmoid(1) = 0.73 grey
     pairs = MirrorCompletion.build(
-        field, verts, normals, parts, seen, field.body_distance(verts, normals), 0.05, light(normals)
+        field, verts, normals, parts, seen, field.body_distance(verts, normals), 0.05, light(normals), rule="mirror"
     )
     target = pairs.targets(field)
     cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()[pairs.cells.numpy()]
@@ -151,7 +152,14 @@ def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
     with torch.no_grad():
         field.color.copy_(torch.randn(field.color.shape, generator=torch.Generator().manual_seed(0)))
     pairs = MirrorCompletion.build(
-        field, verts, normals, parts, verts[:, 2] > centre_z[parts], field.body_distance(verts, normals), margin=0.05
+        field,
+        verts,
+        normals,
+        parts,
+        verts[:, 2] > centre_z[parts],
+        field.body_distance(verts, normals),
+        margin=0.05,
+        rule="mirror",
     )
     step = BLUR_VOXELS * field.voxel_size
     offsets = [torch.zeros(3)] + [sign * step * torch.eye(3)[k] for k in range(3) for sign in (1.0, -1.0)]
@@ -159,3 +167,55 @@ def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
     logits = torch.stack([sample_grid(grid, field.box, pairs.sources + o) for o in offsets]).mean(0)
     assert (pairs.sources + step > box[1]).any() or (pairs.sources - step < box[0]).any()  # the border is met
     torch.testing.assert_close(pairs.targets(field), torch.sigmoid(logits).clamp(0, 1), atol=2e-5, rtol=0)
+
+
+def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the_head_hair(anny_body):
+    """The guarded mirror: a back cell whose mirror source shows a front-only detail (a tie down the torso's
+    middle) takes what its band mostly shows instead; other cells keep their mirror source; behind the ears the
+    head takes the hair the photo shows round the face, and a bald head (skin all round) takes none."""
+    from elicit_diffrender.fit.completion import head_layout
+
+    verts, normals = _canonical(anny_body)
+    parts = anny_body.vertex_parts()
+    torso, head = parts == PART_NAMES.index("torso"), parts == PART_NAMES.index("head")
+    facing = normals[:, 2]  # a camera far in front
+    seen = facing > 0.0
+    mid = verts[torso, 0].mean()
+    ear_y, ear_z, _ = head_layout(verts, parts)
+    top, tie_color = (0.2, 0.3, 0.8), (0.9, 0.1, 0.1)
+    skin, hair = (0.8, 0.6, 0.5), (0.1, 0.08, 0.05)
+    colors = np.tile(top, (len(verts), 1))
+    tie = torso & (np.abs(verts[:, 0] - mid) < 0.04) & (verts[:, 1] > 0.1)  # from the collar to the belt
+    colors[tie] = tie_color
+    colors[head] = skin
+    colors[head & ((verts[:, 1] > ear_y + 0.03) | (verts[:, 2] < ear_z))] = hair
+    colors[~seen] = np.nan
+    box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
+    field = CanonicalField(box, 0.03)
+    sdf = field.body_distance(verts, normals)
+
+    def build(colors):
+        return MirrorCompletion.build(
+            field, verts, normals, parts, seen, sdf, 0.05, colors=colors, facing=facing, rule="guarded"
+        )
+
+    pairs = build(colors)
+    assert len(pairs) == pairs.unseen > 0 and pairs.rule_counts["hair"] > 0
+    cells = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()[pairs.cells.numpy()]
+    _, owner = cKDTree(verts).query(cells)
+    _, source_vertex = cKDTree(verts).query(pairs.sources.numpy())
+    fixed = pairs.colors.numpy()
+    back = torso[owner] & (normals[owner, 2] < -0.5)
+    onto_tie = back & tie[source_vertex] & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)  # below the shoulders' tops
+    assert onto_tie.sum() > 10 and pairs.rule_counts["front detail: band colour"] >= onto_tie.sum()
+    np.testing.assert_allclose(fixed[onto_tie], np.tile(top, (onto_tie.sum(), 1)), atol=1e-6)  # not the tie
+    plain = back & ~tie[source_vertex] & (np.abs(cells[:, 0] - mid) > 0.1) & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)
+    assert plain.sum() > 20 and np.isnan(fixed[plain]).all()  # a source that agrees with its band stays live
+    scalp_back = head[owner] & (cells[:, 2] < ear_z - 0.02) & (cells[:, 1] > ear_y)
+    assert scalp_back.sum() > 5
+    np.testing.assert_allclose(fixed[scalp_back], np.tile(hair, (scalp_back.sum(), 1)), atol=1e-6)
+    target = pairs.targets(field).numpy()  # fixed colours where given, the grid's mirrored colour elsewhere
+    np.testing.assert_allclose(target[onto_tie], fixed[onto_tie], atol=1e-6)
+    colors[head & seen] = skin
+    bald = build(colors)
+    assert bald.rule_counts["hair"] == 0

@@ -40,3 +40,37 @@ def test_angle_around_the_body_ignores_height():
     side = look_at(np.array([3.0, -1.0, 0.0]), centre, up, 300.0, 64, 64)
     assert abs(angle_around_body(back_high, front, centre, up) - 180.0) < 1e-6
     assert abs(angle_around_body(side, front, centre, up) - 90.0) < 1e-6
+
+
+def test_silhouette_metrics_count_holes_and_spill_against_the_mask():
+    from elicit_diffrender.outputs.evaluate import silhouette_metrics
+
+    mask = np.zeros((20, 20), dtype=bool)
+    mask[5:15, 5:15] = True  # 100 pixels
+    alpha = np.zeros((20, 20))
+    alpha[5:15, 5:13] = 0.9  # 80 of them covered: 20 holes
+    alpha[0:2, 0:5] = 0.6  # 10 spilt outside
+    alpha[14, 14] = 0.4  # under half: not solid
+    m = silhouette_metrics(alpha, mask)
+    assert m["hole_fraction"] == 0.2 and m["spill"] == 0.1 and abs(m["silhouette_iou"] - 80 / 110) < 1e-12
+
+
+def test_lean_angles_read_a_lean_towards_the_camera_and_errors_compare_two_bodies(anny_body):
+    """A body tipped 20 degrees towards a level camera in front reads 20 degrees more towards it, torso and shins;
+    seen from its left, the same tip is sideways in the image; the error between the two bodies is 20 degrees."""
+    from elicit_diffrender.outputs.evaluate import lean_angles, lean_errors
+
+    pose = anny_body.zero_pose()
+    tipped = (pose, np.array([np.radians(20.0), 0.0, 0.0]), None)  # about +x (the body's left): top forwards
+    upright = (pose, None, None)
+    front = look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 500.0, 64, 64)
+    a, b = lean_angles(anny_body, tipped, front), lean_angles(anny_body, upright, front)
+    for segment in ("torso", "left_shin", "right_shin"):
+        assert abs(a[segment]["towards_camera"] - b[segment]["towards_camera"] - 20.0) < 1e-6
+        assert abs(a[segment]["sideways"] - b[segment]["sideways"]) < 1.0  # (a splayed shin tips a little sideways)
+    side = look_at(np.array([3.0, 0.0, 0.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 500.0, 64, 64)
+    c, d = lean_angles(anny_body, tipped, side), lean_angles(anny_body, upright, side)
+    assert abs(abs(c["torso"]["sideways"] - d["torso"]["sideways"]) - 20.0) < 0.5
+    errors = lean_errors(a, b)
+    assert all(abs(errors[s] - 20.0) < 0.5 for s in ("torso", "left_shin", "right_shin"))
+    assert max(lean_errors(a, a).values()) < 1e-6

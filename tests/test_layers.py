@@ -154,7 +154,11 @@ def test_the_checks_catch_an_upward_import_and_a_circle(tmp_path):
     """The checker itself, on a small package with one upward import and one circle."""
     pkg = tmp_path / "pkg"
     for folder, files in {
-        "core": {"a.py": "from ..apps import tool\n", "b.py": "from . import c\n", "c.py": "def f():\n    from .b import x\n"},
+        "core": {
+            "a.py": "from ..apps import tool\n",
+            "b.py": "from . import c\n",
+            "c.py": "def f():\n    from .b import x\n",
+        },
         "apps": {"tool.py": "from ..core.a import y\n"},
         "odd": {"z.py": ""},
     }.items():

@@ -206,3 +206,43 @@ def test_with_a_mask_keypoints_are_found_on_grey(tmp_path, monkeypatch):
     assert np.allclose(seen["rgb"][0, 0], 0.5, atol=0.01)  # the black background became grey
     assert np.allclose(seen["rgb"][30, 20], (0.9, 0.1, 0.1), atol=0.01)  # the person is untouched
     assert not (tmp_path / "out").exists()
+
+
+def _landmarks(points: dict[int, tuple[float, float]]) -> np.ndarray:
+    out = np.zeros((33, 3))
+    for k, (x, y) in points.items():
+        out[k] = (x, y, 0.9)
+    return out
+
+
+STANDING_2D = {11: (90, 100), 12: (110, 100), 13: (80, 150), 14: (120, 150), 23: (93, 200), 24: (107, 200),
+               25: (93, 290), 26: (107, 290), 27: (93, 380), 28: (107, 380)}  # fmt: skip
+
+
+def test_posture_priors_follow_what_the_photo_shows():
+    """Knees held straight and the trunk upright only for a standing person; the arm-plane prior only for arms the
+    image shows at length."""
+    from elicit_diffrender.body.fitting import arms_in_image_plane, standing
+
+    assert standing(_landmarks(STANDING_2D))
+    seated = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}  # thighs towards the camera
+    assert not standing(_landmarks(seated))
+    assert not standing(None) and not standing(_landmarks({k: v for k, v in STANDING_2D.items() if k != 27}))
+    np.testing.assert_array_equal(arms_in_image_plane(_landmarks(STANDING_2D)), [1.0, 1.0])
+    forward = {**STANDING_2D, 13: (88, 110)}  # the left upper arm seen end-on: 10 px of a 100 px torso
+    np.testing.assert_array_equal(arms_in_image_plane(_landmarks(forward)), [0.0, 1.0])
+
+
+def test_an_upright_trunk_takes_the_thighs_lean_and_keeps_its_own_sideways_tilt():
+    from elicit_diffrender.body.fitting import upright_trunk
+
+    def direction(towards: float, sideways: float) -> torch.Tensor:  # camera axes: x right, y down, z away
+        t, s = np.radians(towards), np.radians(sideways)
+        d = torch.tensor([np.sin(s), -np.cos(s) * np.cos(t), -np.cos(s) * np.sin(t)], dtype=torch.float64)
+        return d / d.norm()
+
+    trunk = direction(20.0, 5.0)  # MediaPipe's trunk leaning 20 degrees towards the camera
+    out = upright_trunk(trunk, [-direction(-2.0, 0.0), -direction(-4.0, 0.0)])  # thighs run down, hip to knee
+    towards = np.degrees(np.arctan2(-out[2].item(), -out[1].item()))
+    assert abs(towards - (-3.0)) < 1e-6 and abs(out[0].item() - trunk[0].item()) < 1e-3
+    assert abs(out.norm().item() - 1.0) < 1e-12

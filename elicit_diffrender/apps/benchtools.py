@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import platform
 import statistics
 import subprocess
+import tarfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -18,8 +20,28 @@ import torch
 
 from ..core.io import write_json, write_text
 
+ROOT_DIR = Path(__file__).resolve().parents[2]  # the project's checkout
 # The synthetic subjects of the quality benchmarks: (seed, training motion).
 SYNTHETIC_SUBJECTS = [(1, "walk_in_place"), (2, "wave"), (3, "squat")]
+# Beside the seeds, the photo-path benchmark's people: clothes and postures of real people (``inputs/people.py``),
+# and the openly licensed scans of ``../shared/scans`` (CC BY 4.0), each (its file there, ``to_obj.py`` options).
+PHOTO_PEOPLE = (
+    "open_jacket_tie", "front_details", "held_folder", "arms_crossed", "hands_in_pockets", "short_dark_hair",
+    "long_hair", "dark_suit", "seated", "legs_crossed", "arms_raised", "arms_forward",
+)  # fmt: skip
+SCANS = {
+    "carla": ("carla/carla.idle.opt.glb", []),
+    "f3": ("f3/f3.idle.opt.glb", []),
+    "man_in_suit": ("man_in_suit/scene.gltf", ["--hide", "high-poly:0.85,0,1,0.15"]),
+}
+SCAN_CREDITS = {  # the credit lines the licence asks for wherever their renders or results are shown
+    "carla": '"Carla Rigged 001" by renderpeople, CC BY 4.0 (sketchfab.com/3d-models/carla-rigged-001-rigged-3d-'
+    'business-women-acf520f450d14dd799f98a6fede3edf5)',
+    "f3": '"Rigged Standing Asian Female Character Idle Pose" by florah, CC BY 4.0 (sketchfab.com/3d-models/rigged-'
+    "standing-asian-female-character-idle-pose-b31b024797194829af4637fbfb6838b7)",
+    "man_in_suit": '"Man Dressed In Suit" by 3d-character-br, CC BY 4.0 (sketchfab.com/3d-models/man-dressed-in-suit-'
+    "ae103052b58a450397f42a189aa726b7)",
+}
 # PSNR differences below this are ties in the benchmark reports: settings that should not change the
 # images (occupancy skipping, early stopping) move novel-view PSNR by about this much.
 PSNR_TIE_DB = 0.05
@@ -123,7 +145,7 @@ def run(cmd: list[str], env: dict, log: Path) -> None:
 
 
 def fit_and_eval(
-    elicit: str,
+    elicit: str | list[str],
     subject: Path,
     run_dir: Path,
     overrides: list[str],
@@ -132,18 +154,20 @@ def fit_and_eval(
     eval_args: Sequence[str] = (),
 ) -> dict:
     """``elicit fit`` on ``subject`` and ``elicit eval`` against ``truth`` (default: the same subject);
-    a finished job (its ``metrics.json``) is reused and a killed fit resumed."""
+    a finished job (its ``metrics.json``) is reused and a killed fit resumed. ``elicit`` is the command (a path,
+    or a list such as :func:`elicit_command`'s)."""
     from ..fit.checkpoint import CHECKPOINT
     from ..model.avatar import AVATAR_FILE
 
     metrics = run_dir / "metrics.json"
+    elicit = [elicit] if isinstance(elicit, str) else list(elicit)
     if not metrics.is_file():
         sets = [x for kv in overrides for x in ("--set", kv)]
         resume = ["--resume"] if (run_dir / CHECKPOINT).is_file() else []
         if not (run_dir / AVATAR_FILE).is_file():
-            run([elicit, "fit", str(subject), "--out", str(run_dir), *sets, *resume], env, run_dir / "fit.log")
+            run([*elicit, "fit", str(subject), "--out", str(run_dir), *sets, *resume], env, run_dir / "fit.log")
         target = str(truth or subject)
-        run([elicit, "eval", str(run_dir), target, "--out", str(metrics), *eval_args], env, run_dir / "eval.log")
+        run([*elicit, "eval", str(run_dir), target, "--out", str(metrics), *eval_args], env, run_dir / "eval.log")
     return json.loads(metrics.read_text())
 
 
@@ -155,7 +179,7 @@ def mean(values: list) -> float | None:
 
 def add_job_arguments(parser: argparse.ArgumentParser, name: str) -> None:
     """The options every fit-and-eval benchmark takes: --quick, --jobs, --work (``runs/NAME``), --out, --set."""
-    root = Path(__file__).resolve().parents[2]
+    root = ROOT_DIR
     parser.add_argument("--quick", action="store_true", help="one subject only")
     parser.add_argument("--jobs", type=int, default=2, help="parallel fits (each single-threaded)")
     parser.add_argument("--work", type=Path, default=root / "runs" / name)
@@ -177,3 +201,60 @@ def synthesize_subjects(elicit: str, work: Path, subjects: Sequence[tuple[int, s
         if not (path / "subject.json").is_file():
             cmd = [elicit, "synth", "--seed", str(seed), "--motion", motion, "--out", str(path)]
             run(cmd, env, work / f"synth_{seed}.log")
+
+
+def benchmark_people(scans: Path | None, quick: bool = False) -> list[str]:
+    """The photo-path subjects beyond the seeds: the named people, then the scans found under ``scans``."""
+    found = [name for name, (path, _) in SCANS.items() if scans is not None and (scans / path).is_file()]
+    return [PHOTO_PEOPLE[0], *found[:1]] if quick else [*PHOTO_PEOPLE, *found]
+
+
+def synthesize_person(elicit: str, work: Path, name: str, motion: str, env: dict, scans: Path | None) -> Path:
+    """``work/subject_NAME``: ``elicit synth --person NAME``, or a scan converted to OBJ by the scans' own
+    ``to_obj.py`` and rendered with ``elicit synth --mesh``; kept when it is already there."""
+    import sys
+
+    path = work / f"subject_{name}"
+    if (path / "subject.json").is_file():
+        return path
+    if name in SCANS:
+        if scans is None:
+            raise RuntimeError(f"{name} is a scan: pass --scans (the folder of ../shared/scans)")
+        source, options = SCANS[name]
+        mesh = work / "scans" / name
+        if not (mesh / "scan.obj").is_file():
+            run([sys.executable, str(scans / "to_obj.py"), str(scans / source), str(mesh), *options], env,
+                work / f"to_obj_{name}.log")  # fmt: skip
+        cmd = [elicit, "synth", "--mesh", str(mesh / "scan.obj"), "--motion", motion, "--out", str(path)]
+    else:
+        cmd = [elicit, "synth", "--person", name, "--motion", motion, "--out", str(path)]
+    run(cmd, env, work / f"synth_{name}.log")
+    return path
+
+
+def export_commit(commit: str, dest: Path) -> str:
+    """The commit's tree in ``dest`` (with the package's ``kernels`` and ``scenes`` linked in); its full hash."""
+    full = subprocess.run(["git", "rev-parse", commit], cwd=ROOT_DIR, capture_output=True, text=True, check=True)
+    sha = full.stdout.strip()
+    stamp = dest / ".commit"
+    if not (stamp.is_file() and stamp.read_text() == sha):
+        archive = subprocess.run(["git", "archive", sha], cwd=ROOT_DIR, capture_output=True, check=True).stdout
+        dest.mkdir(parents=True, exist_ok=True)
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            tar.extractall(dest, filter="data")
+        for name in ("kernels", "scenes"):
+            link = dest / "elicit_diffrender" / name
+            if not link.exists():
+                link.symlink_to(Path("..") / name)
+        stamp.write_text(sha)
+    return sha
+
+
+def elicit_command(code: Path) -> list[str]:
+    """The ``elicit`` command of the code in ``code`` (run it with ``PYTHONPATH=code``): the command line moved
+    from ``elicit_diffrender/cli.py`` to ``apps/cli.py`` when the package was grouped by layer. ``-P`` keeps the
+    working folder (a checkout of other code) off the module path."""
+    import sys
+
+    layered = (code / "elicit_diffrender" / "apps" / "cli.py").is_file()
+    return [sys.executable, "-P", "-m", "elicit_diffrender.apps.cli" if layered else "elicit_diffrender.cli"]

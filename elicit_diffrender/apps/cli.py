@@ -9,6 +9,7 @@ from pathlib import Path
 from ..core.checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
 from ..core.errors import ElicitError, error_line
 from ..fit.config import PRESETS, FitConfig
+from ..inputs.people import PEOPLE
 
 
 class Parser(argparse.ArgumentParser):
@@ -19,9 +20,19 @@ class Parser(argparse.ArgumentParser):
 
 
 def _synth(args: argparse.Namespace) -> None:
-    from ..inputs.synth import synthesize
+    if sum(x is not None for x in (args.seed, args.person, args.mesh)) > 1:
+        raise ElicitError("synth: give one of --seed, --person and --mesh")
+    if args.mesh is not None:
+        from ..inputs.scan import synthesize_scan
 
-    out = synthesize(args.seed, args.out, motion_name=args.motion, size=args.size, spp=args.spp, force=args.force)
+        out = synthesize_scan(args.mesh, args.out, args.motion, size=args.size, spp=args.spp, force=args.force)
+    else:
+        from ..inputs.synth import synthesize
+
+        seed = 0 if args.seed is None else args.seed
+        out = synthesize(
+            seed, args.out, args.motion, size=args.size, spp=args.spp, force=args.force, person=args.person
+        )
     print(f"wrote synthetic subject {out} (contact sheet: {out / 'contact_sheet.png'})")
 
 
@@ -201,7 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synth", help="write a synthetic clothed subject (elicit-subject/1)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=None, help="draws a procedural person (default 0)")
+    s.add_argument("--person", choices=sorted(PEOPLE), help="a named person: clothes and posture of real people")
+    s.add_argument("--mesh", type=Path, help="a textured OBJ of a person (metres, +y up, facing +z) instead")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--motion", default="walk_in_place", help="built-in target motion")
     s.add_argument("--size", type=positive_int, default=512, help="image size in pixels")

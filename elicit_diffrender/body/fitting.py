@@ -103,12 +103,28 @@ HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lower
 # otherwise bend the knees 10-20 degrees out of the image plane (measured on the synthetic subjects; 400 left
 # the knees 1-3 cm nearer their true depth than 100 on the photo-path benchmark's subjects).
 KNEE_WEIGHT = 400.0
+KNEE_WEIGHT_NOT_STANDING = 1.0  # a photo of someone seated, kneeling or mid-stride shows bent knees: no such prior
 # Cost of each upper arm leaving the body's frontal plane (the square of its direction's component along the
 # torso's normal). Nothing in one photo says how far an upper arm reaches towards or away from the camera:
 # MediaPipe's metric upper arms were 6-36 degrees off the true ones on six synthetic subjects (0.5-20 with this
 # prior and no metric arms).
 ARM_PLANE_WEIGHT = 1.0
+# A standing person (``standing``): each leg's knee at least STANDING_DROP torso lengths below its hip and its ankle
+# as far below its knee, in the image. Only then are the knees held nearly straight and the trunk upright (below).
+STANDING_DROP = 0.55
+# An upper arm shorter than this many torso lengths in the image reaches towards or away from the camera: the
+# frontal-plane prior is not applied to it (an arm held out to the camera, a hand on the far hip).
+ARM_FORESHORTENED = 0.35
+# A standing person's spine (pelvis to neck) leans towards or away from the camera as much as their thighs do
+# (``AnnyFit.uprightness``): the keypoints, the silhouette and MediaPipe's metric trunk otherwise let the spine bend
+# back while the collarbones bring the shoulders forward, or lean the whole trunk 10-20 degrees towards the camera.
+UPRIGHT_WEIGHT = 1.0
+# MediaPipe's metric trunk is taken for wrong, and the spine held to the thighs, only where its lean towards the
+# camera differs from its thighs' by more than this (its errors on the test subjects: 14-23 degrees; a hip sway or
+# a slight stoop stays below).
+UPRIGHT_TRIGGER_DEG = 10.0
 ARMS = (("upperarm01.L", "lowerarm01.L"), ("upperarm01.R", "lowerarm01.R"))  # shoulder and elbow joints
+LEGS = (("upperleg01.L", "lowerleg01.L"), ("upperleg01.R", "lowerleg01.R"))  # hip and knee joints
 
 
 def procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +171,10 @@ class AnnyFit(torch.nn.Module):
             self.names.index(n) for n in ("upperarm01.L", "upperarm01.R", "upperleg01.L", "upperleg01.R")
         ]
         self.arm_joints = torch.tensor([[self.names.index(n) for n in arm] for arm in ARMS])  # (2, shoulder/elbow)
+        self.spine_ends = [self.names.index(n) for n in ("root", "neck01")]
+        self.legs = torch.tensor([[self.names.index(n) for n in leg] for leg in LEGS])  # (2, hip/knee)
+        self.knee_weight = KNEE_WEIGHT
+        self.arms_in_plane = torch.ones(2, dtype=torch.float64)  # which arms the frontal-plane prior holds
         self.rotvecs = torch.nn.Parameter(torch.zeros(len(FREE_JOINTS), 3, dtype=torch.float64))
         self.pheno = torch.nn.Parameter(torch.zeros(len(self.labels), dtype=torch.float64))
         self.g_rot = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
@@ -183,18 +203,27 @@ class AnnyFit(torch.nn.Module):
             axis = torch.as_tensor(ANNY_TO_WORLD.T @ np.array([1.0, 0.0, 0.0]))
             bend = bend + F.relu(-sign * (self.rotvecs[k] @ axis)) ** 2
         knees = (self.rotvecs[self.knees] ** 2).sum()
-        return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend + KNEE_WEIGHT * knees
+        return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend + self.knee_weight * knees
 
     def arm_plane(self, heads: torch.Tensor) -> torch.Tensor:
-        """How far the upper arms leave the torso's frontal plane: the sum over both arms of the squared
-        component of the shoulder -> elbow direction along the plane's normal (the shoulder line crossed with the
-        trunk, from the joint ``heads`` (J, 3))."""
+        """How far the upper arms leave the torso's frontal plane: the sum over the arms ``arms_in_plane`` holds of
+        the squared component of the shoulder -> elbow direction along the plane's normal (the shoulder line
+        crossed with the trunk, from the joint ``heads`` (J, 3))."""
         left, right, hip_left, hip_right = heads[self.torso_joints]
         normal = torch.linalg.cross(left - right, (left + right) / 2 - (hip_left + hip_right) / 2)
         normal = normal / normal.norm().clamp(min=1e-9)
         arms = heads[self.arm_joints[:, 1]] - heads[self.arm_joints[:, 0]]
         arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
-        return ((arms @ normal) ** 2).sum()
+        return (self.arms_in_plane * (arms @ normal) ** 2).sum()
+
+    def uprightness(self, heads: torch.Tensor) -> torch.Tensor:
+        """The squared difference between how far the spine (pelvis to neck) and the thighs (knees to hips) point
+        along the camera's axis (camera space: z away from the camera), from the joint ``heads`` (J, 3)."""
+        pelvis, neck = heads[self.spine_ends]
+        spine = (neck - pelvis) / (neck - pelvis).norm().clamp(min=1e-9)
+        thighs = heads[self.legs[:, 0]] - heads[self.legs[:, 1]]
+        thighs = thighs / thighs.norm(dim=1, keepdim=True).clamp(min=1e-9)
+        return (spine[2] - thighs[:, 2].mean()) ** 2
 
     def result(self) -> dict:
         pose = np.zeros((len(self.names), 3))
@@ -206,6 +235,39 @@ class AnnyFit(torch.nn.Module):
             "global_orient": self.g_rot.detach().numpy().copy(),
             "transl": self.g_t.detach().numpy().copy(),
         }
+
+
+class KeypointModel:
+    """Anny's counterparts of MediaPipe's landmarks (``KEYPOINTS``): joint heads shifted by ``KEYPOINT_OFFSETS``
+    in their bone's frame, or points of the mesh. ``ids`` are the landmark indices, in the order returned."""
+
+    def __init__(self, fit: AnnyFit) -> None:
+        from .base import PART_NAMES
+
+        body0 = AnnyBody()
+        vsel = select_vertices(
+            body0.rest_vertices,
+            body0.vertex_parts(),
+            PART_NAMES.index("head"),
+            (PART_NAMES.index("left_shin"), PART_NAMES.index("right_shin")),
+        )
+        self.ids = list(KEYPOINTS)
+        joint = [fit.names.index(name) if kind == "joint" else -1 for kind, name in KEYPOINTS.values()]
+        vertex = [vsel[name] if kind == "vertex" else -1 for kind, name in KEYPOINTS.values()]
+        self.joint, self.vertex = torch.tensor(joint), torch.tensor(vertex)
+        self.frame = torch.tensor(
+            [fit.names.index(KEYPOINT_OFFSETS[k][0]) if k in KEYPOINT_OFFSETS else 0 for k in self.ids]
+        )
+        self.offset = torch.tensor(
+            [KEYPOINT_OFFSETS[k][1] if k in KEYPOINT_OFFSETS else (0.0, 0.0, 0.0) for k in self.ids],
+            dtype=torch.float64,
+        )
+        self.is_joint = self.joint >= 0
+
+    def __call__(self, verts: torch.Tensor, heads: torch.Tensor, rots: torch.Tensor) -> torch.Tensor:
+        """(len(ids), 3) landmark positions of the posed body (``AnnyFit``'s outputs)."""
+        at_joint = heads[self.joint.clamp(min=0)] + (rots[self.frame] @ self.offset[:, :, None])[:, :, 0]
+        return torch.where(self.is_joint[:, None], at_joint, verts[self.vertex.clamp(min=0)])
 
 
 def _optimise(fit: AnnyFit, params: list, loss_fn, steps: int, lr: float) -> float:
@@ -308,6 +370,55 @@ def line_directions(points: dict[int, torch.Tensor], names) -> torch.Tensor:
     return out / out.norm(dim=1, keepdim=True).clamp(min=1e-9)
 
 
+def _visible(keypoints: np.ndarray, ids) -> bool:
+    return bool((keypoints[list(ids), 2] > 0.5).all())
+
+
+def torso_length_px(keypoints: np.ndarray) -> float:
+    """Pixels from the hips' midpoint to the shoulders' in the image."""
+    return float(np.linalg.norm(keypoints[[11, 12], :2].mean(0) - keypoints[[23, 24], :2].mean(0)))
+
+
+def standing(keypoints: np.ndarray | None) -> bool:
+    """Whether MediaPipe's 2D landmarks (33, 3) show a standing person: each knee well below its hip and each
+    ankle well below its knee, in torso lengths (``STANDING_DROP``; image y grows downwards)."""
+    if keypoints is None or not _visible(keypoints, (11, 12, 23, 24, 25, 26, 27, 28)):
+        return False
+    torso = torso_length_px(keypoints)
+    y = keypoints[:, 1]
+    return bool(all(y[k] - y[h] > STANDING_DROP * torso and y[a] - y[k] > STANDING_DROP * torso
+                    for h, k, a in ((23, 25, 27), (24, 26, 28))))  # fmt: skip
+
+
+def arms_in_image_plane(keypoints: np.ndarray | None) -> np.ndarray:
+    """(2,) 1 for each upper arm (left, right) that the image shows at length, 0 for one foreshortened
+    (``ARM_FORESHORTENED``) or not seen."""
+    out = np.zeros(2)
+    if keypoints is None or not _visible(keypoints, (11, 12, 23, 24)):
+        return out
+    torso = torso_length_px(keypoints)
+    for side, (shoulder, elbow) in enumerate(((11, 13), (12, 14))):
+        length = np.linalg.norm(keypoints[elbow, :2] - keypoints[shoulder, :2])
+        out[side] = float(_visible(keypoints, (shoulder, elbow)) and length >= ARM_FORESHORTENED * torso)
+    return out
+
+
+def upright_trunk(trunk: torch.Tensor, thighs: list[torch.Tensor]) -> torch.Tensor:
+    """MediaPipe's metric trunk direction (hips to shoulders; camera axes: x right, y down, z away) with its lean
+    towards the camera replaced by its thighs' mean (each hip to knee, so taken reversed): a standing person's
+    trunk and thighs are upright together. Its metric trunk leans
+    towards the camera by 14-23 degrees on three of eight standing test subjects whose trunks are upright, while its
+    metric thighs stay within 4 degrees of theirs."""
+
+    def lean(d: torch.Tensor) -> torch.Tensor:  # towards the camera, from up
+        return torch.atan2(-d[2], -d[1])
+
+    target = torch.stack([lean(-d) for d in thighs]).mean()
+    r = torch.sqrt(trunk[1] ** 2 + trunk[2] ** 2)
+    out = torch.stack([trunk[0], -r * torch.cos(target), -r * torch.sin(target)])
+    return out / out.norm().clamp(min=1e-9)
+
+
 def fit_anny_to_image(
     K: np.ndarray,
     mask: np.ndarray,
@@ -328,31 +439,14 @@ def fit_anny_to_image(
         raise ValueError("the image fit needs 2D keypoints or 3D joints")
     targets = ImageTargets(K, mask, keypoints)
     fit = AnnyFit()
-    body0 = AnnyBody()
-    parts = body0.vertex_parts()
-    from .base import PART_NAMES
-
-    vsel = select_vertices(
-        body0.rest_vertices,
-        parts,
-        PART_NAMES.index("head"),
-        (PART_NAMES.index("left_shin"), PART_NAMES.index("right_shin")),
-    )
-    kp_ids, kp_joint, kp_vertex = [], [], []
-    for k, (kind, name) in KEYPOINTS.items():
-        kp_ids.append(k)
-        kp_joint.append(fit.names.index(name) if kind == "joint" else -1)
-        kp_vertex.append(vsel[name] if kind == "vertex" else -1)
-    kp_joint_t, kp_vertex_t = torch.tensor(kp_joint), torch.tensor(kp_vertex)
-    kp_frame_t = torch.tensor([fit.names.index(KEYPOINT_OFFSETS[k][0]) if k in KEYPOINT_OFFSETS else 0 for k in kp_ids])
-    kp_offset = torch.tensor([KEYPOINT_OFFSETS[k][1] if k in KEYPOINT_OFFSETS else (0.0, 0.0, 0.0) for k in kp_ids],
-                             dtype=torch.float64)  # fmt: skip
-    is_joint = kp_joint_t >= 0
-
-    def model_keypoints(verts, heads, rots):
-        at_joint = heads[kp_joint_t.clamp(min=0)] + (rots[kp_frame_t] @ kp_offset[:, :, None])[:, :, 0]
-        return torch.where(is_joint[:, None], at_joint, verts[kp_vertex_t.clamp(min=0)])
-
+    model_keypoints = KeypointModel(fit)
+    kp_ids = model_keypoints.ids
+    # Posture priors only where the photo shows the posture they assume (3D joints alone keep them all).
+    is_standing = standing(keypoints) if keypoints is not None else True
+    hold_upright = False  # set below where MediaPipe's metric trunk leans away from its own thighs
+    fit.knee_weight = KNEE_WEIGHT if is_standing else KNEE_WEIGHT_NOT_STANDING
+    if keypoints is not None:
+        fit.arms_in_plane = torch.as_tensor(arms_in_image_plane(keypoints))
     if keypoints is not None:
         goal = targets.keypoints[kp_ids]
         vis = (goal[:, 2] > 0.5).double()
@@ -376,6 +470,11 @@ def fit_anny_to_image(
         world = torch.as_tensor(np.asarray(world_landmarks), dtype=torch.float64)
         directions = line_directions({k: world[k] for k in used}, lines_used)
         world_goal = dict(zip(lines_used, directions, strict=True))
+        if is_standing and {"left_thigh", "right_thigh"} <= set(world_goal):
+            thighs = [world_goal["left_thigh"], world_goal["right_thigh"]]
+            upright = upright_trunk(world_goal["trunk"], thighs)
+            if torch.rad2deg(torch.arccos((upright @ world_goal["trunk"]).clamp(-1, 1))) > UPRIGHT_TRIGGER_DEG:
+                world_goal["trunk"], hold_upright = upright, True
 
     def model_lines(verts, heads, rots, names) -> torch.Tensor:
         kp = model_keypoints(verts, heads, rots)
@@ -448,6 +547,8 @@ def fit_anny_to_image(
             verts, heads, rots = fit()
             total = 1e-3 * fit.prior() + WORLD_WEIGHT * world_loss(verts, heads, rots)
             total = total + ARM_PLANE_WEIGHT * fit.arm_plane(heads)
+            if hold_upright:
+                total = total + UPRIGHT_WEIGHT * fit.uprightness(heads)
             if keypoints is not None:
                 total = total + kp_loss(verts, heads, rots)
             if joints3d is not None:
@@ -467,7 +568,7 @@ def fit_anny_to_image(
                   render_steps, RENDER_LR)  # fmt: skip
     with torch.no_grad():
         verts, heads, rots = fit()
-        report = {}
+        report = {"standing": is_standing, "held_upright": hold_upright, "arms_in_plane": fit.arms_in_plane.tolist()}
         if keypoints is not None:
             uv = targets.project(model_keypoints(verts, heads, rots))
             err = (uv - goal[:, :2]).norm(dim=1)[vis > 0].numpy()
@@ -486,5 +587,125 @@ def fit_anny_to_image(
                 np.median((heads[anny_ids] - torch.as_tensor(np.asarray(joints3d)[:24][smpl_ids])).norm(dim=1).numpy())
                 * 1000
             )
+    out = fit.result()
+    return {**out, "report": report, "body": AnnyBody(out["phenotype"])}
+
+
+def triangulate(
+    projections: np.ndarray, keypoints: np.ndarray, threshold: float, min_visibility: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points (L, 3) of landmarks seen in several views, and how many views agree on each (0: none).
+
+    ``projections`` (N, 3, 4) are ``K [R | T]``; ``keypoints`` (N, L, 3) hold x, y (pixels) and visibility.
+    Per landmark, every pair of views where it is visible proposes a point (linear triangulation); the one
+    that most views reproject within ``threshold`` pixels wins (a detector that swaps left and right in a
+    rear view is outvoted), and the point is re-triangulated from those views."""
+
+    def solve(views: list[int], k: int) -> np.ndarray:
+        rows = []
+        for v in views:
+            x, y = keypoints[v, k, :2]
+            rows += [x * projections[v, 2] - projections[v, 0], y * projections[v, 2] - projections[v, 1]]
+        _, _, vt = np.linalg.svd(np.asarray(rows))
+        return vt[-1, :3] / vt[-1, 3] if abs(vt[-1, 3]) > 1e-12 else np.full(3, np.nan)
+
+    def errors(point: np.ndarray, k: int) -> np.ndarray:
+        uvw = projections @ np.append(point, 1.0)
+        uv = uvw[:, :2] / np.where(uvw[:, 2:] > 1e-9, uvw[:, 2:], np.nan)
+        return np.linalg.norm(uv - keypoints[:, k, :2], axis=1)
+
+    n, n_landmarks = keypoints.shape[:2]
+    points, support = np.full((n_landmarks, 3), np.nan), np.zeros(n_landmarks, dtype=np.int64)
+    for k in range(n_landmarks):
+        seen = [v for v in range(n) if keypoints[v, k, 2] > min_visibility]
+        best: list[int] = []
+        for i, a in enumerate(seen):
+            for b in seen[i + 1 :]:
+                candidate = solve([a, b], k)
+                if not np.isfinite(candidate).all():
+                    continue
+                inliers = [v for v in seen if errors(candidate, k)[v] < threshold]
+                if len(inliers) > len(best):
+                    best = inliers
+        if len(best) >= 2:
+            points[k], support[k] = solve(best, k), len(best)
+    return points, support
+
+
+def fit_anny_to_views(
+    cameras: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    masks: list[np.ndarray],
+    keypoints: list[np.ndarray],
+    steps: int = FIT_STEPS,
+) -> dict:
+    """Fit Anny to several views of one person in one pose, with known cameras (``K``, ``R``, ``T``:
+    ``x_cam = R x + T``): MediaPipe's landmarks (33, 3 per view), triangulated (:func:`triangulate`), and every
+    view's person mask (each vertex inside every mask, each mask pixel near some vertex). The body starts upright
+    and is placed onto the triangulated torso; returns the fit's parameters (world frame), the body and a report
+    (landmark error in 3D, views that agree on each landmark, silhouette IoU is left to the caller)."""
+    if not (len(cameras) == len(masks) == len(keypoints)) or len(cameras) < 2:
+        raise ValueError("fit_anny_to_views needs at least two views, each with a camera, a mask and keypoints")
+    projections = np.stack([K @ np.concatenate([R, np.asarray(T).reshape(3, 1)], 1) for K, R, T in cameras])
+    size = float(max(masks[0].shape))
+    points, support = triangulate(projections, np.stack(keypoints), threshold=0.02 * size)
+    fit = AnnyFit()
+    fit.knee_weight = KNEE_WEIGHT_NOT_STANDING  # triangulated landmarks place the knees; no posture is assumed
+    model_keypoints = KeypointModel(fit)
+    rows = [i for i, k in enumerate(model_keypoints.ids) if support[k] >= 2]
+    if len(rows) < 6:
+        raise ValueError(f"only {len(rows)} landmarks were found in two or more views; the fit needs six")
+    goal = torch.as_tensor(points[[model_keypoints.ids[i] for i in rows]])
+    torso_rows = [j for j, i in enumerate(rows) if model_keypoints.ids[i] in TORSO_KEYPOINTS]
+    targets = [ImageTargets(K, m, None) for (K, _, _), m in zip(cameras, masks, strict=True)]
+    world_to_cam = [(torch.as_tensor(R, dtype=torch.float64), torch.as_tensor(T, dtype=torch.float64).reshape(3))
+                    for _, R, T in cameras]  # fmt: skip
+
+    def kp_loss(verts, heads, rots, only=None):
+        d = (model_keypoints(verts, heads, rots)[rows] - goal).pow(2).sum(1)
+        robust = d / (d + 0.03**2)  # Geman-McClure, 3 cm as scale
+        return robust.mean() if only is None else robust[only].mean()
+
+    def silhouette(verts):
+        total = torch.zeros((), dtype=torch.float64)
+        for t, (R, T) in zip(targets, world_to_cam, strict=True):
+            uv = t.project(verts @ R.T + T)
+            inside = (t.sample_outside(uv) / t.scale).pow(2).mean()
+            cover = torch.cdist(t.mask_pixels, uv[::4]).min(1).values / t.scale
+            total = total + inside + cover.pow(2).mean()
+        return total / len(targets)
+
+    with torch.no_grad():
+        verts, heads, rots = fit()
+        start = model_keypoints(verts, heads, rots)[rows].numpy()
+    rot, t = procrustes(start[torso_rows], points[[model_keypoints.ids[rows[j]] for j in torso_rows]])
+    with torch.no_grad():
+        fit.g_rot.copy_(matrix_to_axis_angle(torch.as_tensor(rot)))
+        fit.g_t.copy_(torch.as_tensor(t))
+
+    def coarse():
+        verts, heads, rots = fit()
+        return kp_loss(verts, heads, rots, torso_rows) + 1e-3 * (fit.pheno**2).sum()
+
+    def fine(with_silhouette: bool):
+        def loss():
+            verts, heads, rots = fit()
+            total = kp_loss(verts, heads, rots) + 1e-3 * fit.prior()
+            return total + 6.0 * silhouette(verts) if with_silhouette else total
+
+        return loss
+
+    _optimise(fit, [fit.g_rot, fit.g_t, fit.pheno], coarse, 60, 0.05)
+    _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
+    _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
+    with torch.no_grad():
+        verts, heads, rots = fit()
+        err = (model_keypoints(verts, heads, rots)[rows] - goal).norm(dim=1).numpy()
+    report = {
+        "landmark_error_mm": {
+            "median": float(np.median(err) * 1000),
+            "per_landmark": {int(model_keypoints.ids[i]): float(e * 1000) for i, e in zip(rows, err, strict=True)},
+        },
+        "views_per_landmark": {int(k): int(support[k]) for k in model_keypoints.ids},
+    }
     out = fit.result()
     return {**out, "report": report, "body": AnnyBody(out["phenotype"])}

@@ -41,7 +41,7 @@ class MeshAppearance:
     """How the mesh is coloured: per-vertex colours or a UV texture (with per-vertex UVs)."""
 
     vertex_colors: np.ndarray | None = None  # (V, 3) in [0, 1]
-    uvs: np.ndarray | None = None  # (V, 2), v pointing up as in OBJ
+    uvs: np.ndarray | None = None  # (V, 2), v down: v = 0 samples the texture's top row
     texture: np.ndarray | None = None  # (H, W, 3) in [0, 1]
 
 

@@ -46,6 +46,32 @@ NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they 
 CROWN_UP = 0.5  # a vertex whose canonical normal's up component exceeds this ...
 CROWN_DEPTH = 0.06  # ... and that lies at most this far (metres) below its part's top is on the crown
 REFRESH = 10  # steps between recomputations of the targets
+# The guarded rule (``completion = "guarded"``) compares a mirror source's photo colour with what the cell's part
+# shows at the cell's band (its place along the part's axis): the mode of the photo colours of the well-seen points
+# within ``BAND_HALF`` of it along the axis (at most ``BAND_MOST`` of them, evenly spread). A point is well seen when
+# its normal is within ``WELL_SEEN`` (cosine) of the way to the camera (nearer the silhouette a pixel is smeared over
+# the surface and mixed with the background).
+BAND_HALF = 0.025
+BAND_MOST = 48
+WELL_SEEN = 0.3
+MIN_PART_SEEN = 30  # a part with fewer well-seen vertices has no band colour to compare with
+GUARD_RADIUS = 0.15  # colour radius of a band's mode: a garment's pattern is one colour, two garments are two
+DETAIL_DISTANCE = 0.2  # a mirror source this far in colour from its band's mode shows a front-only detail
+MODE_CHUNK = 4096  # cells whose candidates' colour distances are compared at once
+HAIR_CANDIDATES = 16  # seen hair points whose mode colour a scalp cell takes
+# The head: a cell behind the ears or above them takes the hair the photo shows round the face, if it shows hair:
+# at least HAIR_SHARE of the head's upper seen vertices darker than HAIR_DARKER times the face's skin, or of
+# another hue (chromaticity at least HAIR_HUE from the skin's); a forehead lit brighter than the cheeks is skin.
+HAIR_DARKER = 0.7
+HAIR_HUE = 0.05
+HAIR_SHARE = 0.3
+FACE_HALF_WIDTH = 0.045  # metres each side of the face's midline: eyes, nose and mouth, copied nowhere
+
+
+def facing_cosine(vertices: np.ndarray, normals: np.ndarray, camera: Camera) -> np.ndarray:
+    """(V,) cosine between every vertex's (unit) normal and the way from it to the camera's centre."""
+    to_camera = camera.center - vertices
+    return np.einsum("vc,vc->v", normals, to_camera) / np.maximum(np.linalg.norm(to_camera, axis=1), 1e-9)
 
 
 def visible_vertices(
@@ -72,6 +98,7 @@ class MirrorCompletion:
     gains: torch.Tensor  # (N,) S(n_cell) / S(n_source): the photo's light on the cell's side against the source's
     rule_counts: dict[str, int]  # how many cells each rule gave a source
     unseen: int  # unseen cells near the body
+    colors: torch.Tensor | None = None  # (N, 3) fixed photo colours of the sources (the band rule); None: the grid's
     _target: torch.Tensor | None = None
     _key: int = -1
     _blur: torch.Tensor | None = None  # (N, cells) sparse: the blur's trilinear weights of every colour cell
@@ -88,12 +115,17 @@ class MirrorCompletion:
         margin: float,
         light: np.ndarray | None = None,
         garment: np.ndarray | None = None,
+        colors: np.ndarray | None = None,
+        facing: np.ndarray | None = None,
+        rule: str = "mirror",
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
         ``vertex_parts``, and ``sdf``: ``field.body_distance`` of it) and which of its vertices the input camera
         sees; cells up to ``margin`` outside the body count, and the ``garment`` cells (flat bool: a garment's
         hull) however far out. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without
-        it the gains are 1."""
+        it the gains are 1. ``colors`` (V, 3) are the photo's colours at the seen vertices (NaN elsewhere),
+        ``facing`` (V,) the cosine between each vertex's normal and the way to the input camera; ``rule`` is
+        ``"mirror"`` (:func:`mirror_sources`) or ``"guarded"`` (the mirror, with :func:`guard_details`)."""
         pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
         sdf = sdf.reshape(-1)
         room = sdf < margin if garment is None else (sdf < margin) | garment
@@ -102,52 +134,16 @@ class MirrorCompletion:
         _, idx = nearest(tree, pts[near])
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[near[hidden]], idx[hidden]
-        part = vertex_parts[owner]
-        centre_z = np.zeros(len(PART_NAMES))
-        for k in np.unique(vertex_parts):
-            centre_z[k] = canonical[vertex_parts == k, 2].mean()
-        front_back = p.copy()
-        front_back[:, 2] = 2 * centre_z[part] - p[:, 2]
-        left_right = p.copy()
-        left_right[:, 0] = 2 * canonical[:, 0].mean() - p[:, 0]
-        both = np.stack([left_right[:, 0], p[:, 1], front_back[:, 2]], 1)
-        mirrored_ok = ~np.isin(part, [PART_NAMES.index(n) for n in NO_FRONT_BACK])
-        source = np.full_like(p, np.nan)
-        source_vertex = np.zeros(len(cells), dtype=np.int64)
-        counts = {}
-        for name, candidate, allowed in (
-            ("front/back", front_back, mirrored_ok),
-            ("left/right", left_right, np.ones(len(cells), dtype=bool)),
-            ("both", both, mirrored_ok),
-        ):
-            free = np.nonzero(np.isnan(source[:, 0]) & allowed)[0]
-            _, cand = nearest(tree, candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
-            ok = seen[cand]
-            source[free[ok]] = candidate[free[ok]]
-            source_vertex[free[ok]] = cand[ok]
-            counts[name] = int(ok.sum())
-        # Then the nearest seen vertex of a pool: for the head its crown (the back of a head is hair, a hat or
-        # bare skin like its top, not the face), then the cell's own part, then any part.
-        # Below CROWN_DEPTH the up-facing vertices are brows, eyelids, the nose's ridge and the lips: the face.
-        top = np.full(len(PART_NAMES), -np.inf)
-        np.maximum.at(top, vertex_parts, canonical[:, 1])
-        crown = seen & (normals[:, 1] > CROWN_UP) & (canonical[:, 1] > top[vertex_parts] - CROWN_DEPTH)
-        no_mirror = [PART_NAMES.index(n) for n in NO_FRONT_BACK]
-        for name, pool_of in (
-            ("crown", lambda k: crown & (vertex_parts == k) if k in no_mirror else None),
-            ("nearest seen of its part", lambda k: seen & (vertex_parts == k)),
-            ("nearest seen", lambda k: seen),
-        ):
-            counts[name] = 0
-            free = np.nonzero(np.isnan(source[:, 0]))[0]
-            for k in np.unique(part[free]):
-                pool = pool_of(int(k))
-                if pool is None or not pool.any():
-                    continue
-                rows, pool = free[part[free] == k], np.nonzero(pool)[0]
-                _, j = nearest(cKDTree(canonical[pool]), p[rows])
-                source[rows], source_vertex[rows] = canonical[pool[j]], pool[j]
-                counts[name] += int(rows.size)
+        if rule == "guarded":
+            colors = np.full((len(canonical), 3), np.nan) if colors is None else colors
+            facing = np.ones(len(canonical)) if facing is None else facing
+            source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
+            color = guard_details(
+                p, owner, source_vertex, canonical, normals, vertex_parts, seen, colors, facing, counts
+            )
+        else:
+            source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
+            color = None
         has = ~np.isnan(source[:, 0])
         gains = np.ones(len(cells)) if light is None else light[owner] / light[source_vertex]
         device = field.color.device
@@ -157,6 +153,7 @@ class MirrorCompletion:
             torch.as_tensor(gains[has], dtype=torch.float32, device=device),
             counts,
             int(cells.size),
+            None if color is None else torch.as_tensor(color[has], dtype=torch.float32, device=device),
         )
 
     def __len__(self) -> int:
@@ -195,9 +192,15 @@ class MirrorCompletion:
 
     @torch.no_grad()
     def targets(self, field: CanonicalField) -> torch.Tensor:
-        """(N, 3) the relit, blurred colour at every cell's source."""
+        """(N, 3) the relit colour of every cell's source: its fixed photo colour where it has one, else the
+        grid's, blurred."""
+        if self.colors is not None and not torch.isnan(self.colors[:, 0]).any():
+            return (self.colors * self.gains[:, None]).clamp(0.0, 1.0)
         logits = torch.sparse.mm(self.blur_matrix(field), field.color.detach().reshape(-1, 3))
-        return (torch.sigmoid(logits) * self.gains[:, None]).clamp(0.0, 1.0)
+        live = torch.sigmoid(logits)
+        if self.colors is not None:
+            live = torch.where(torch.isnan(self.colors[:, :1]), live, self.colors)
+        return (live * self.gains[:, None]).clamp(0.0, 1.0)
 
     def state(self) -> dict:
         """The current targets (a resumed fit continues with the same ones)."""
@@ -215,3 +218,206 @@ class MirrorCompletion:
             self._target, self._key = self.targets(field), step // REFRESH
         color = torch.sigmoid(cell_logits)
         return ((color - self._target) ** 2).sum(-1).mean()
+
+
+def mirror_sources(
+    p: np.ndarray,
+    owner: np.ndarray,
+    canonical: np.ndarray,
+    normals: np.ndarray,
+    vertex_parts: np.ndarray,
+    seen: np.ndarray,
+    tree: cKDTree,
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """The mirror rule: for cells at ``p`` (owned by body vertices ``owner``), the first seen point among their
+    mirror image through their part's frontal plane (not for the head), through the body's sagittal plane, through
+    both; the head's crown for the head; the nearest seen vertex of their part; the nearest seen vertex. Returns
+    the (N, 3) sources (NaN: none), their body vertices and how many cells each rule served."""
+    part = vertex_parts[owner]
+    centre_z = np.zeros(len(PART_NAMES))
+    for k in np.unique(vertex_parts):
+        centre_z[k] = canonical[vertex_parts == k, 2].mean()
+    front_back = p.copy()
+    front_back[:, 2] = 2 * centre_z[part] - p[:, 2]
+    left_right = p.copy()
+    left_right[:, 0] = 2 * canonical[:, 0].mean() - p[:, 0]
+    both = np.stack([left_right[:, 0], p[:, 1], front_back[:, 2]], 1)
+    mirrored_ok = ~np.isin(part, [PART_NAMES.index(n) for n in NO_FRONT_BACK])
+    source = np.full_like(p, np.nan)
+    source_vertex = np.zeros(len(p), dtype=np.int64)
+    counts = {}
+    for name, candidate, allowed in (
+        ("front/back", front_back, mirrored_ok),
+        ("left/right", left_right, np.ones(len(p), dtype=bool)),
+        ("both", both, mirrored_ok),
+    ):
+        free = np.nonzero(np.isnan(source[:, 0]) & allowed)[0]
+        _, cand = nearest(tree, candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
+        ok = seen[cand]
+        source[free[ok]] = candidate[free[ok]]
+        source_vertex[free[ok]] = cand[ok]
+        counts[name] = int(ok.sum())
+    # Then the nearest seen vertex of a pool: for the head its crown (the back of a head is hair, a hat or
+    # bare skin like its top, not the face), then the cell's own part, then any part.
+    # Below CROWN_DEPTH the up-facing vertices are brows, eyelids, the nose's ridge and the lips: the face.
+    top = np.full(len(PART_NAMES), -np.inf)
+    np.maximum.at(top, vertex_parts, canonical[:, 1])
+    crown = seen & (normals[:, 1] > CROWN_UP) & (canonical[:, 1] > top[vertex_parts] - CROWN_DEPTH)
+    no_mirror = [PART_NAMES.index(n) for n in NO_FRONT_BACK]
+    for name, pool_of in (
+        ("crown", lambda k: crown & (vertex_parts == k) if k in no_mirror else None),
+        ("nearest seen of its part", lambda k: seen & (vertex_parts == k)),
+        ("nearest seen", lambda k: seen),
+    ):
+        counts[name] = 0
+        free = np.nonzero(np.isnan(source[:, 0]))[0]
+        for k in np.unique(part[free]):
+            pool = pool_of(int(k))
+            if pool is None or not pool.any():
+                continue
+            rows, pool = free[part[free] == k], np.nonzero(pool)[0]
+            _, j = nearest(cKDTree(canonical[pool]), p[rows])
+            source[rows], source_vertex[rows] = canonical[pool[j]], pool[j]
+            counts[name] += int(rows.size)
+    return source, source_vertex, counts
+
+
+def part_axes(canonical: np.ndarray, vertex_parts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every part's centre and long axis (the first principal direction of its vertices, pointing up or out)."""
+    centres = np.zeros((len(PART_NAMES), 3))
+    axes = np.tile([0.0, 1.0, 0.0], (len(PART_NAMES), 1))
+    for k in np.unique(vertex_parts):
+        v = canonical[vertex_parts == k]
+        centres[k] = v.mean(0)
+        if len(v) >= 3:
+            axis = np.linalg.svd(v - centres[k], full_matrices=False)[2][0]
+            axes[k] = axis if axis @ (centres[k] - canonical.mean(0)) >= 0 else -axis
+    return centres, axes
+
+
+def band_candidates(pool_along: np.ndarray, cell_along: np.ndarray, half: float, most: int) -> np.ndarray:
+    """(N, most) indices into the pool of the points whose place along the axis lies within ``half`` of each
+    cell's (evenly thinned to ``most``; -1 pads)."""
+    order = np.argsort(pool_along)
+    sorted_along = pool_along[order]
+    lo = np.searchsorted(sorted_along, cell_along - half)
+    hi = np.searchsorted(sorted_along, cell_along + half)
+    count = hi - lo
+    step = np.maximum(count / most, 1.0)
+    k = np.arange(most)[None]
+    index = lo[:, None] + np.floor(k * step[:, None]).astype(np.int64)
+    valid = k < np.minimum(count, most)[:, None]
+    return np.where(valid, order[np.clip(index, 0, len(order) - 1)], -1)
+
+
+def robust_color(candidates: np.ndarray, colors: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of (N, K) candidate vertices (-1: none), the mode of their photo colours: the mean of the colours
+    within ``radius`` of the candidate with most such neighbours, recentred once. What most of the candidates
+    show wins, so a logo, a tie, a V-neck or a highlight among them neither becomes the colour nor tints it. Returns
+    the candidate nearest the mode (for the light at the source) and the (N, 3) mode (NaN where none is known)."""
+    pick = np.zeros(len(candidates), dtype=np.int64)
+    mode = np.full((len(candidates), 3), np.nan)
+    for start in range(0, len(candidates), MODE_CHUNK):
+        cand = candidates[start : start + MODE_CHUNK]
+        c = np.where((cand >= 0)[..., None], colors[np.maximum(cand, 0)], np.nan)  # (n, K, 3)
+        known = ~np.isnan(c[..., 0])
+        c0 = np.nan_to_num(c)
+        close = np.linalg.norm(c0[:, :, None] - c0[:, None], axis=-1) < radius
+        close &= known[:, :, None] & known[:, None]
+        rows = np.arange(len(cand))
+        centre = c0[rows, close.sum(2).argmax(1)]
+        for _ in range(2):  # the mean of the seed's neighbours, then of the mean's
+            near = (np.linalg.norm(c0 - centre[:, None], axis=-1) < radius) & known
+            mean = (c0 * near[..., None]).sum(1) / np.maximum(near.sum(1, keepdims=True), 1)
+            centre = np.where(near.any(1, keepdims=True), mean, centre)
+        nearest_k = np.where(known, np.linalg.norm(c0 - centre[:, None], axis=-1), np.inf).argmin(1)
+        pick[start : start + MODE_CHUNK] = cand[rows, nearest_k]
+        mode[start : start + MODE_CHUNK] = np.where(known.any(1, keepdims=True), centre, np.nan)
+    return pick, mode
+
+
+def head_layout(canonical: np.ndarray, vertex_parts: np.ndarray) -> tuple[float, float, float]:
+    """Height and depth of the ears and the midline's x on the canonical head (from ``select_vertices``)."""
+    from ..body.fitting import select_vertices
+
+    head = PART_NAMES.index("head")
+    sel = select_vertices(
+        canonical, vertex_parts, head, (PART_NAMES.index("left_shin"), PART_NAMES.index("right_shin"))
+    )
+    ears = canonical[[sel["ear.L"], sel["ear.R"]]]
+    return float(ears[:, 1].mean()), float(ears[:, 2].mean()), float(ears[:, 0].mean())
+
+
+def hair_pool(
+    canonical: np.ndarray, normals: np.ndarray, vertex_parts: np.ndarray, seen: np.ndarray, colors: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(V,) bool: the seen head vertices that show hair (darker than the face's skin or of another hue, above or
+    behind the ears: the head's outline too, where the hair round a face shows), empty when the head shows too
+    little of it (bald, a shaved head, a cap of skin colour); (V,) bool: the face's middle, which is never a
+    source; (V,) bool: the head's vertices that hair covers when there is hair (above the ears, or behind them
+    down to the nape)."""
+    head = vertex_parts == PART_NAMES.index("head")
+    ear_y, ear_z, mid_x = head_layout(canonical, vertex_parts)
+    y, z = canonical[:, 1], canonical[:, 2]
+    scalp = head & ((y > ear_y + 0.03) | ((z < ear_z + 0.01) & (y > ear_y - 0.05)))
+    face = head & (np.abs(canonical[:, 0] - mid_x) < FACE_HALF_WIDTH) & (z > ear_z + 0.04) & (y < ear_y + 0.05)
+    known = seen & ~np.isnan(colors[:, 0])
+    cheeks = known & head & (normals[:, 2] > 0.6) & (np.abs(y - ear_y) < 0.04)
+    upper = known & head & ((y > ear_y + 0.03) | (z < ear_z))
+    if cheeks.sum() < 5 or not upper.any():
+        return np.zeros(len(canonical), dtype=bool), face, scalp
+    skin = np.median(colors[cheeks], axis=0)
+    rgb = np.nan_to_num(colors)
+    luma = rgb.sum(1)
+    hue = rgb / np.maximum(luma, 1e-6)[:, None]
+    other_hue = np.linalg.norm(hue - skin / max(skin.sum(), 1e-6), axis=1) > HAIR_HUE
+    hairy = upper & ((luma < HAIR_DARKER * skin.sum()) | other_hue)
+    if hairy.sum() < max(10, HAIR_SHARE * upper.sum()):
+        return np.zeros(len(canonical), dtype=bool), face, scalp
+    return hairy, face, scalp
+
+
+def guard_details(
+    p: np.ndarray,
+    owner: np.ndarray,
+    source_vertex: np.ndarray,
+    canonical: np.ndarray,
+    normals: np.ndarray,
+    vertex_parts: np.ndarray,
+    seen: np.ndarray,
+    colors: np.ndarray,
+    facing: np.ndarray,
+    counts: dict[str, int],
+) -> np.ndarray:
+    """The guarded mirror rule's fixed colours (N, 3; NaN: the mirror source's live colour stays): a cell whose
+    mirror source shows a colour far (``DETAIL_DISTANCE``) from the mode of what its part shows at the cell's band
+    (a tie, a V-neck, a logo: details on the front only) takes that mode instead; a head cell above or behind the
+    ears takes the hair the photo shows round the face, when it shows hair."""
+    color = np.full((len(p), 3), np.nan)
+    part = vertex_parts[owner]
+    well_seen = seen & (facing >= WELL_SEEN)
+    hairy, face, scalp = hair_pool(canonical, normals, vertex_parts, seen, colors)
+    centres, axes = part_axes(canonical, vertex_parts)
+    mode = np.full((len(p), 3), np.nan)
+    for k in np.unique(part):
+        rows = np.nonzero(part == k)[0]
+        pool = np.nonzero(well_seen & (vertex_parts == k) & ~face)[0]
+        if len(pool) < MIN_PART_SEEN:
+            continue
+        along = (canonical[pool] - centres[k]) @ axes[k]
+        cand = band_candidates(along, (p[rows] - centres[k]) @ axes[k], BAND_HALF, BAND_MOST)
+        cand = np.where(cand >= 0, pool[np.maximum(cand, 0)], -1)
+        mode[rows] = robust_color(cand, colors, GUARD_RADIUS)[1]
+    source_color = colors[source_vertex]
+    detail = np.linalg.norm(source_color - mode, axis=1) > DETAIL_DISTANCE  # False where either is unknown
+    color[detail] = mode[detail]
+    counts["front detail: band colour"] = int(detail.sum())
+    counts["hair"] = 0
+    rows = np.nonzero(scalp[owner])[0]
+    if hairy.any() and rows.size:
+        pool = np.nonzero(hairy)[0]
+        count = min(HAIR_CANDIDATES, len(pool))
+        _, cand = nearest(cKDTree(canonical[pool]), p[rows], count)
+        color[rows] = robust_color(pool[cand.reshape(len(rows), count)], colors, GUARD_RADIUS)[1]
+        counts["hair"] = int(rows.size)
+    return color

@@ -34,6 +34,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "perceptual": ("auto", "lpips", "ssim"),
     "encoder": ("auto", "clip", "mirror", "random-features"),
     "baseline": ("none", "explicit_texture"),
+    "completion": ("mirror", "guarded"),
 }
 
 
@@ -103,6 +104,10 @@ class FitConfig:
     w_init_alpha: float = 1.0  # stage 1: MSE of the rendered opacity against the body render's
     w_semantic: float = 0.1  # the semantic prior (0: off, with or without CLIP weights)
     w_mirror: float = 0.01  # the semantic prior's weights-free fallback (mirror completion), without CLIP weights
+    # Where that fallback takes an unseen cell's colour (fit/completion.py): "mirror" (the cell's mirror image
+    # through the body) or "guarded" (the mirror, but a source far in colour from what its band mostly shows, a
+    # front-only detail, gives way to that; hair behind the ears)
+    completion: str = "mirror"
     w_silhouette: float = 0.01
     w_edge: float = 0.01
     w_tv: float = 1e-2  # grid smoothness (no counterpart in the MLP-based paper)

@@ -105,7 +105,18 @@ class Objective:
         normals = vertex_normals(canon.vertices, body.faces)
         light = view.shading(view.normals)
         pairs = MirrorCompletion.build(
-            self.field, canon.vertices, normals, body.vertex_parts(), view.seen, body_sdf, margin, light, garment
+            self.field,
+            canon.vertices,
+            normals,
+            body.vertex_parts(),
+            view.seen,
+            body_sdf,
+            margin,
+            light,
+            garment,
+            view.colors,
+            view.facing,
+            self.cfg.completion,
         )
         rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
         log.info(

@@ -21,10 +21,10 @@ from ..core.cameras import Camera
 from ..data.mesh_render import MeshAppearance, MeshRenderer
 from ..data.rigs import body_rotation, place_ring
 from ..data.subject import Subject, SubjectError
-from .completion import visible_vertices
+from .completion import facing_cosine, visible_vertices
 from .config import FitConfig
 from .hybrid_sampling import body_yaw
-from .shading import Shading, estimate_shading
+from .shading import Shading, estimate_shading, seen_colors
 
 PART_PIXELS_AT = 512 * 512  # ``part_min_pixels`` is counted in an image of this many pixels
 CENTRED_PATCH_P = 0.9  # probability that a patch is centred on the person
@@ -105,6 +105,8 @@ class InputView:
     seen: np.ndarray  # (V,) bool: the body vertices the camera sees
     normals: np.ndarray  # (V, 3) the posed body's vertex normals (world)
     shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
+    colors: np.ndarray  # (V, 3) the photo's colour at every seen vertex well inside the mask, NaN elsewhere
+    facing: np.ndarray  # (V,) cosine between each vertex's normal and the way to the camera
 
     @classmethod
     def load(cls, subject: Subject, scale: float, renderer: MeshRenderer, device: torch.device) -> InputView:
@@ -122,7 +124,12 @@ class InputView:
         full = subject.cameras[subject.input_camera]  # the light is fitted to the photo at full resolution
         photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
         shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
-        return cls(camera, image.to(device), mask.to(device), person, out["labels"][0], seen, normals, shading)
+        colors = np.full(posed.vertices.shape, np.nan)
+        idx, rgb = seen_colors(photo, person_full, full, posed.vertices, seen)
+        colors[idx] = rgb
+        facing = facing_cosine(posed.vertices, normals, full)
+        labels = out["labels"][0]
+        return cls(camera, image.to(device), mask.to(device), person, labels, seen, normals, shading, colors, facing)
 
     def part_colors(self) -> np.ndarray:
         """(P, 3) mean colour of every body part in the image (the whole person's where a part is unseen)."""

@@ -15,20 +15,22 @@ the input view, the ring at the input frame (novel views) and the input camera o
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
 from ..body.anny_model import AnnyBody
-from ..body.base import PART_NAMES
+from ..body.base import PART_NAMES, BodyModel
 from ..body.template import vertex_normals
 from ..core.io import folder_in_place, write_image, write_json
 from ..data.mesh_render import MeshAppearance, MeshRenderer
 from ..data.motions import Motion, builtin_motion
 from ..data.rigs import ring_cameras
 from ..data.subject import write_subject
+from .people import PEOPLE
+from .postures import posture
 
 REGIONS = ("skin", "shirt", "collar", "trousers", "shoes", "hair", "skirt")
 THICKNESS = {
@@ -65,6 +67,14 @@ class Outfit:
     loose_top: bool  # a tunic that stands off the body, down over the hips
     skirt: bool  # a flared skirt to above the knees instead of trousers
     hair_volume: float  # metres the hair stands off the head (0: close-cropped)
+    # Clothes and postures of the named people (``PEOPLE``); a seed alone draws none of these.
+    jacket: tuple | None = None  # a jacket over the top, in this colour (the top's sleeves become the jacket's)
+    jacket_open: bool = True  # open: the top shows down the whole front; closed: only a V below the collar
+    tie: tuple | None = None  # a tie down the front of the top, in this colour
+    front_detail: bool = False  # a logo and a button placket on the front of the top only
+    held_object: tuple | None = None  # a folder of this colour held in front of the chest
+    hair_down_back: bool = False  # long hair falling onto the upper back
+    posture: str = "standing"  # the input photo's posture (``postures.POSTURES``)
 
 
 def _color(rng: np.random.Generator, lo: float = 0.1, hi: float = 0.95) -> tuple:
@@ -105,6 +115,14 @@ def draw_outfit(seed: int) -> Outfit:
         skirt=bool(rng.random() < 0.3),
         hair_volume=float(rng.uniform(0.05, 0.14)) if rng.random() < 0.4 else 0.0,
     )
+
+
+def person_outfit(name: str) -> Outfit:
+    """The outfit of a named person (``PEOPLE``)."""
+    if name not in PEOPLE:
+        raise ValueError(f"unknown person {name!r}; choose from {', '.join(PEOPLE)}")
+    seed, changes = PEOPLE[name]
+    return replace(draw_outfit(seed), **changes)
 
 
 def garment_regions(body: AnnyBody, outfit: Outfit) -> np.ndarray:
@@ -154,6 +172,9 @@ def garment_regions(body: AnnyBody, outfit: Outfit) -> np.ndarray:
     back = rel[:, 2] < -0.035
     hair = is_head & (top | (back & (rel[:, 1] > (-0.12 if outfit.hair_long else -0.03))))
     hair &= ~((rel[:, 2] > 0.05) & (rel[:, 1] < 0.09))  # keep the face clear
+    if outfit.hair_down_back:  # long hair over the neck's back and the upper back, between the shoulder blades
+        reach = (v[:, 1] > neck_y - 0.2) & (v[:, 2] < joint["neck"][2] - 0.02) & (np.abs(v[:, 0]) < 0.13)
+        hair |= np.isin(part, ["head", "torso"]) & reach
     region[hair] = REGIONS.index("hair")
     return region
 
@@ -287,10 +308,30 @@ def paint_texture(
         put(back & ((x / 0.11) ** 2 + ((y - 0.33) / 0.11) ** 2 < 1), outfit.print_color)
     elif outfit.back_print == "cross":
         put(back & (y > 0.15) & (y < 0.5) & ((np.abs(x) < 0.025) | (np.abs(y - 0.36) < 0.025)), outfit.print_color)
-    else:
+    elif outfit.back_print == "band":
         put(back & (np.abs(y - 0.3) < 0.05), outfit.print_color)
     front = shirt & (normal[..., 2] > 0.5)
     put(front & (x > 0.05) & (x < 0.11) & (y > 0.32) & (y < 0.38), outfit.print_color)  # a chest pocket
+    if outfit.front_detail:
+        put(front & ((x + 0.09) ** 2 + (y - 0.36) ** 2 < 0.035**2), outfit.shirt_alt)  # a logo
+        placket = shirt & (normal[..., 2] > 0.3) & (np.abs(x) < 0.012)
+        put(placket, outfit.shirt_alt)
+        put(placket & (np.abs(x) < 0.006) & (np.mod(y, 0.07) < 0.012), (0.1, 0.1, 0.1))  # its buttons
+    if outfit.jacket is not None or outfit.tie is not None:
+        top_y, hem_y = y[shirt].max(), y[shirt].min()
+        t = np.clip((y - hem_y) / max(top_y - hem_y, 1e-6), 0.0, 1.0)  # 0 at the hem, 1 at the shoulders
+        facing = shirt & (normal[..., 2] > 0.25)
+        if outfit.jacket_open:  # the top shows between the jacket's fronts down to the hem; a tie down to the belt
+            opening = facing & (np.abs(x) < 0.055 + 0.035 * t)
+            tie = facing & (np.abs(x) < 0.02 + 0.012 * (1 - t)) & (t > 0.08)
+        else:  # a buttoned jacket: a V below the collar, the tie inside it
+            opening = facing & (np.abs(x) < 0.1 * np.clip((t - 0.62) / 0.38, 0.0, 1.0))
+            tie = opening & (np.abs(x) < 0.02 + 0.012 * (1 - t))
+        if outfit.jacket is not None:
+            put(shirt & ~opening, outfit.jacket)
+        if outfit.tie is not None:
+            put(tie, outfit.tie)
+            put(tie & _stripes(y + x, 0.03), np.array(outfit.tie) * 0.55)
     put(region == REGIONS.index("collar"), outfit.shirt_alt)
     trousers = region == REGIONS.index("trousers")
     put(trousers, outfit.trousers)
@@ -324,28 +365,54 @@ class SyntheticPerson:
     regions: np.ndarray  # (V,) garment region per body vertex
     texel_regions: np.ndarray  # (T, T) garment region per texel
     texel_normals: np.ndarray  # (T, T, 3) rest-pose normal per texel
+    object_rest: np.ndarray | None = None  # (N, 3) a held object's vertices, rigid with ``object_bone``, rest pose
+    object_bone: int = -1
 
     def clothed_vertices(self, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
-        """Posed clothed vertices in render-vertex order (clothing rides the body's skinning)."""
-        import torch
-
-        from ..core.geometry import rigid_inverse
-        from ..model.skinning import forward_lbs
-
-        rest = self.body.pose(self.body.zero_pose())
-        posed = self.body.pose(pose, orient, transl)
-        mats = torch.as_tensor(posed.bone_transforms) @ rigid_inverse(torch.as_tensor(rest.bone_transforms))
-        verts = forward_lbs(
-            torch.as_tensor(rest.vertices + self.offsets),
-            torch.as_tensor(self.body.skin_idx),
-            torch.as_tensor(self.body.skin_w),
-            mats,
-        ).numpy()
-        return verts[self.render_to_body]
+        """Posed clothed vertices in render-vertex order (clothing rides the body's skinning), then the held
+        object's."""
+        rest = self.body.rest_vertices + self.offsets
+        verts = skin_to_pose(self.body, rest, self.body.skin_idx, self.body.skin_w, pose, orient, transl)[
+            self.render_to_body
+        ]
+        if self.object_rest is None:
+            return verts
+        bone = bone_motion(self.body, pose, orient, transl)[self.object_bone].numpy()
+        return np.concatenate([verts, self.object_rest @ bone[:3, :3].T + bone[:3, 3]])
 
 
-def make_person(seed: int, texture_size: int = 1024) -> SyntheticPerson:
-    outfit = draw_outfit(seed)
+def bone_motion(body: BodyModel, pose: np.ndarray, orient: np.ndarray, transl: np.ndarray):
+    """(J, 4, 4) torch transforms from the body's rest pose to ``pose``: ``G_posed @ inverse(G_rest)``."""
+    import torch
+
+    from ..core.geometry import rigid_inverse
+
+    rest = body.pose(body.zero_pose())
+    posed = body.pose(pose, orient, transl)
+    return torch.as_tensor(posed.bone_transforms) @ rigid_inverse(torch.as_tensor(rest.bone_transforms))
+
+
+def skin_to_pose(
+    body: BodyModel,
+    rest: np.ndarray,
+    skin_idx: np.ndarray,
+    skin_w: np.ndarray,
+    pose: np.ndarray,
+    orient: np.ndarray,
+    transl: np.ndarray,
+) -> np.ndarray:
+    """Rest-pose vertices (V, 3) with their (V, K) skinning, moved to ``pose`` by linear blend skinning."""
+    import torch
+
+    from ..model.skinning import forward_lbs
+
+    mats = bone_motion(body, pose, orient, transl)
+    return forward_lbs(torch.as_tensor(rest), torch.as_tensor(skin_idx), torch.as_tensor(skin_w), mats).numpy()
+
+
+def make_person(seed: int, texture_size: int = 1024, outfit: Outfit | None = None) -> SyntheticPerson:
+    """The person the seed draws (or ``outfit``, with its own seed), textured and ready to pose."""
+    outfit = draw_outfit(seed) if outfit is None else outfit
     body = AnnyBody(outfit.phenotype)
     region = garment_regions(body, outfit)
     normals = vertex_normals(body.rest_vertices, body.faces)
@@ -355,22 +422,53 @@ def make_person(seed: int, texture_size: int = 1024) -> SyntheticPerson:
     uvs = body.uvs[uv_idx]
     onehot = np.eye(len(REGIONS))[region[body_idx]]
     attrs = np.concatenate([body.rest_vertices[body_idx], normals[body_idx], onehot], 1)
-    img, _ = rasterize_uv(uvs, faces, attrs, texture_size)
+    img, covered = rasterize_uv(uvs, faces, attrs, texture_size)
     tex_region = img[..., 6:].argmax(-1)
     tex_normal = img[..., 3:6] / np.maximum(np.linalg.norm(img[..., 3:6], axis=-1, keepdims=True), 1e-6)
-    texture = paint_texture(outfit, tex_region, img[..., :3], tex_normal, np.random.default_rng(seed + 1))
+    texture = paint_texture(outfit, tex_region, img[..., :3], tex_normal, np.random.default_rng(outfit.seed + 1))
+    held = None
+    if outfit.held_object is not None:
+        held = held_folder(body, offsets, outfit)
+        # The folder's colour goes into texels no body face reads; all its vertices sample them.
+        free = np.argwhere(ndimage.binary_erosion(~covered, iterations=4))
+        if not len(free):
+            raise ValueError("no free texels left for the held object's colour")
+        row, col = free[0]
+        texture[row - 2 : row + 3, col - 2 : col + 3] = outfit.held_object
+        uv = np.array([(col + 0.5) / texture_size, (row + 0.5) / texture_size])
+        faces = np.concatenate([faces, held[1] + len(uvs)])
+        uvs = np.concatenate([uvs, np.repeat(uv[None], len(held[0]), 0)])
     renderer = MeshRenderer(faces, MeshAppearance(uvs=uvs, texture=texture))
-    return SyntheticPerson(outfit, body, offsets, body_idx, renderer, texture, region, tex_region, tex_normal)
+    person = SyntheticPerson(outfit, body, offsets, body_idx, renderer, texture, region, tex_region, tex_normal)
+    if held is not None:
+        person.object_rest, person.object_bone = held[0], held[2]
+    return person
 
 
-def standing_pose(body: AnnyBody) -> np.ndarray:
-    """The input photo's pose: relaxed standing, arms slightly lowered from the rest A-pose."""
-    pose = body.zero_pose()
-    body.set_semantic(pose, "l_shoulder", (0.0, 0.0, -np.radians(8.0)))
-    body.set_semantic(pose, "r_shoulder", (0.0, 0.0, np.radians(8.0)))
-    body.set_semantic(pose, "l_elbow", (-np.radians(10.0), 0.0, 0.0))
-    body.set_semantic(pose, "r_elbow", (-np.radians(10.0), 0.0, 0.0))
-    return pose
+FOLDER_SIZE = (0.30, 0.24, 0.015)  # width, height, thickness of a held folder, metres
+
+
+def held_folder(body: AnnyBody, offsets: np.ndarray, outfit: Outfit) -> tuple[np.ndarray, np.ndarray, int]:
+    """A folder held upright in front of the chest in the outfit's posture, rigid with the upper spine: its
+    (24, 3) vertices in the rest pose (four per side, so each side is flat), (12, 3) faces and the bone."""
+    pose = posture(body, outfit.posture)
+    bone = body.joint_index(body.semantic["spine_upper"])
+    motion = bone_motion(body, pose, np.zeros(3), np.zeros(3)).numpy()
+    rest = body.rest_vertices + offsets
+    clothed = skin_to_pose(body, rest, body.skin_idx, body.skin_w, pose, np.zeros(3), np.zeros(3))
+    posed = body.pose(pose).bone_transforms
+    low, high = (posed[body.joint_index(body.semantic[n]), :3, 3] for n in ("spine_lower", "spine_upper"))
+    centre = (low + high) / 2
+    torso = body.vertex_parts() == PART_NAMES.index("torso")
+    near = torso & (np.abs(clothed[:, 1] - centre[1]) < 0.12) & (np.abs(clothed[:, 0] - centre[0]) < 0.15)
+    w, h, d = FOLDER_SIZE
+    centre = np.array([centre[0], centre[1], clothed[near, 2].max() + 0.012 + d / 2])
+    corners = np.array([[x, y, z] for x in (-w / 2, w / 2) for y in (-h / 2, h / 2) for z in (-d / 2, d / 2)])
+    sides = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 2, 6, 4), (1, 5, 7, 3), (0, 4, 5, 1), (2, 3, 7, 6)]
+    verts = np.concatenate([corners[list(q)] for q in sides]) + centre
+    faces = np.concatenate([[[4 * k, 4 * k + 1, 4 * k + 2], [4 * k, 4 * k + 2, 4 * k + 3]] for k in range(6)])
+    inverse = np.linalg.inv(motion[bone])
+    return verts @ inverse[:3, :3].T + inverse[:3, 3], faces, bone
 
 
 def synthesize(
@@ -382,30 +480,72 @@ def synthesize(
     n_cameras: int = 23,
     texture_size: int = 1024,
     force: bool = False,
+    person: str | None = None,
 ) -> Path:
     """Write a synthetic ``elicit-subject/1`` folder and its contact sheet, as a whole (a non-empty ``out``
-    only with ``force``); returns the folder."""
+    only with ``force``); returns the folder. ``person`` names one of ``PEOPLE`` instead of a seed."""
+    outfit = None if person is None else person_outfit(person)
+    seed = seed if outfit is None else outfit.seed
     with folder_in_place(out, force) as tmp:
-        _synthesize(seed, tmp, motion_name, size, spp, n_cameras, texture_size)
+        _synthesize(seed, tmp, motion_name, size, spp, n_cameras, texture_size, outfit, person)
     return Path(out)
 
 
-def _synthesize(seed: int, out: Path, motion_name: str, size: int, spp: int, n_cameras: int, texture_size: int):
-    from tqdm import tqdm
-
+def _synthesize(
+    seed: int,
+    out: Path,
+    motion_name: str,
+    size: int,
+    spp: int,
+    n_cameras: int,
+    texture_size: int,
+    outfit: Outfit | None = None,
+    person_name: str | None = None,
+) -> None:
     start = time.perf_counter()
-    person = make_person(seed, texture_size)
+    person = make_person(seed, texture_size, outfit)
     body = person.body
+    first = posture(body, person.outfit.posture)
+    motion = motion_after_input(body, (first, np.zeros(3), _ground_shift(body, first)), motion_name)
+    spec = {"model": "anny", "phenotype": outfit_phenotype(person.outfit)}
+    extra = {"seed": seed, "motion": motion_name, "outfit": asdict(person.outfit)}
+    if person_name is not None:
+        extra["person"] = person_name
+    label = f"synth {person_name}" if person_name else f"synth seed {seed}"
+    render_subject(out, person, spec, motion, size, spp, n_cameras, label, extra, start)
+
+
+def motion_after_input(body: BodyModel, input_pose: tuple, motion_name: str) -> Motion:
+    """The input pose (pose, global orientation, translation), then the frames of a built-in motion."""
     target = builtin_motion(motion_name, body)
-    first = standing_pose(body)
-    motion = Motion(
-        np.concatenate([first[None], target.pose]),
-        np.concatenate([np.zeros((1, 3)), target.global_orient]),
-        np.concatenate([_ground_shift(body, first)[None], target.transl]),
+    pose, orient, transl = input_pose
+    return Motion(
+        np.concatenate([np.asarray(pose)[None], target.pose]),
+        np.concatenate([np.asarray(orient)[None], target.global_orient]),
+        np.concatenate([np.asarray(transl)[None], target.transl]),
         None,
         30.0,
         f"{motion_name}+input",
     )
+
+
+def render_subject(
+    out: Path,
+    person,
+    spec: dict,
+    motion: Motion,
+    size: int,
+    spp: int,
+    n_cameras: int,
+    label: str,
+    extra: dict,
+    start: float,
+) -> None:
+    """Render ``person`` (anything with ``clothed_vertices(pose, orient, transl)``, a ``renderer`` and a
+    ``texture``) from a ring of ``n_cameras`` at the motion's first (input) frame and from the input camera at
+    every other frame, and write the subject, its texture and its contact sheet into ``out``."""
+    from tqdm import tqdm
+
     focal = 650.0 * size / 512.0
     cameras = {c.name: c for c in ring_cameras(n=n_cameras, focal=focal, width=size, height=size)}
     input_cam = "cam00"
@@ -414,27 +554,19 @@ def _synthesize(seed: int, out: Path, motion_name: str, size: int, spp: int, n_c
     by_frame: dict[int, list[str]] = {}
     for cam, f in jobs:
         by_frame.setdefault(f, []).append(cam)
-    for f, cams in tqdm(sorted(by_frame.items()), desc=f"synth seed {seed}", unit="frame", leave=False):
+    for f, cams in tqdm(sorted(by_frame.items()), desc=label, unit="frame", leave=False):
         verts = person.clothed_vertices(*motion.frame(f))
         out_imgs = person.renderer.render(verts, [cameras[c] for c in cams], ("shaded",), spp=spp)
         for k, cam in enumerate(cams):
             alpha = out_imgs["alpha"][k]
             rgb = np.clip(out_imgs["shaded"][k], 0, 1) * (alpha[..., None] > 0.5)
             views[(cam, f)] = (rgb, alpha > 0.5)
-    spec = {"model": "anny", "phenotype": outfit_phenotype(person.outfit)}
-    extra = {
-        "synthetic": {
-            "seed": seed,
-            "motion": motion_name,
-            "outfit": asdict(person.outfit),
-            "generator": "elicit_diffrender.inputs.synth",
-            "seconds": round(time.perf_counter() - start, 1),
-        }
-    }
+    seconds = round(time.perf_counter() - start, 1)
+    extra = {"synthetic": {**extra, "generator": "elicit_diffrender.inputs.synth", "seconds": seconds}}
     write_subject(out, spec, cameras, motion, input_cam, 0, views, extra)
     write_image(out / "texture.png", person.texture)
     write_contact_sheet(out, views, cameras, input_cam, len(motion))
-    write_json(out / "synth.json", {"seed": seed, "seconds": time.perf_counter() - start, "views": len(views)})
+    write_json(out / "synth.json", {**extra["synthetic"], "views": len(views)})
 
 
 def outfit_phenotype(outfit: Outfit) -> dict:

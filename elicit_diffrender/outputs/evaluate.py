@@ -1,8 +1,8 @@
 """``elicit eval``: novel-view and novel-pose metrics in the Neural Body protocol.
 
-* novel view: the input frame from every camera except the input one; ``rear`` summarises the
-  cameras more than ``REAR_DEGREES`` from the input camera around the body's vertical axis (the
-  side a single photo never shows);
+* novel view: the input frame from every camera except the input one; ``side`` summarises the cameras
+  ``SIDE_DEGREES`` from the input camera around the body's vertical axis, ``rear`` those more than
+  ``REAR_DEGREES`` from it (the side a single photo never shows);
 * novel pose: the input camera at every other frame.
 
 A run fitted on another subject of the same person (the photo path: ``elicit prepare`` on a
@@ -16,7 +16,10 @@ own motion).
 PSNR is taken over the pixels inside the projected 3D box of the posed body (padded by
 ``BOX_PADDING`` metres on every side: the convex hull of its 8 projected corners); SSIM
 (scikit-image) over that region's bounding rectangle; LPIPS(VGG) when its weights are available,
-otherwise ``null`` with the reason. Renders and ground truth are compared on black.
+otherwise ``null`` with the reason. Renders and ground truth are compared on black. How solid the
+avatar is against the true mask ``M``, with ``A`` the render's ``alpha > 0.5``: ``silhouette_iou``
+``|A & M| / |A | M|``, ``hole_fraction`` ``|M & ~A| / |M|`` (gaps: the person is there, the avatar is not)
+and ``spill`` ``|A & ~M| / |M|`` (the avatar where the person is not).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from ..data.subject import Subject
 
 BOX_PADDING = 0.05
 REAR_DEGREES = 120.0
+SIDE_DEGREES = (60.0, 120.0)  # a side view: more than the first, at most the second, from the input camera
 GRID_ROWS = 8  # views in each split's grid, evenly spaced through the split
 
 
@@ -70,6 +74,18 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / max(err, 1e-10)))
 
 
+def silhouette_metrics(alpha: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """IoU of ``alpha > 0.5`` against the true ``mask``, the share of the mask it leaves empty (holes) and
+    what it covers outside the mask, as a share of the mask (spill)."""
+    solid = alpha > 0.5
+    area = max(int(mask.sum()), 1)
+    return {
+        "silhouette_iou": float((solid & mask).sum() / max(int((solid | mask).sum()), 1)),
+        "hole_fraction": float((mask & ~solid).sum() / area),
+        "spill": float((solid & ~mask).sum() / area),
+    }
+
+
 def ssim_in_rect(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     ys, xs = np.nonzero(mask)
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
@@ -100,7 +116,7 @@ class Lpips:
             return float(self.model(*t))
 
 
-Renderer = Callable[[Camera, int], np.ndarray]
+Renderer = Callable[[Camera, int], dict[str, np.ndarray]]  # (camera, frame index) -> {"rgb", "alpha"}
 SPLITS = ("novel_view", "novel_pose")
 
 
@@ -128,6 +144,40 @@ def camera_in_frame(camera: Camera, scale: float, rot: np.ndarray, transl: np.nd
     )
 
 
+LEAN_SEGMENTS = {"torso": ("pelvis", "neck"), "left_shin": ("l_knee", "l_ankle"), "right_shin": ("r_knee", "r_ankle")}
+
+
+def lean_angles(body, pose: tuple, camera: Camera) -> dict[str, dict[str, float]]:
+    """Each of ``LEAN_SEGMENTS``' direction, in the frame of the input ``camera`` held level (up: the image's
+    up, towards: the camera, right: the image's right): its angle from vertical, its lean towards the camera
+    (the one a photo cannot see; positive: top nearer the camera) and its lean to the image's right, degrees."""
+    posed = body.pose(*pose)
+    joint = {n: posed.bone_transforms[body.joint_index(body.semantic[n]), :3, 3] for n in body.semantic}
+    up, right = -camera.R[1], camera.R[0]
+    towards = np.cross(right, up)  # -camera.R[2]: from the body back to the camera, horizontal
+    out = {}
+    for name, (a, b) in LEAN_SEGMENTS.items():
+        d = joint[b] - joint[a] if name == "torso" else joint[a] - joint[b]  # pointing up the body
+        d = d / max(np.linalg.norm(d), 1e-9)
+        out[name] = {
+            "from_vertical": float(np.degrees(np.arccos(np.clip(d @ up, -1.0, 1.0)))),
+            "towards_camera": float(np.degrees(np.arctan2(d @ towards, d @ up))),
+            "sideways": float(np.degrees(np.arctan2(d @ right, d @ up))),
+            "_direction": [float(d @ right), float(d @ up), float(d @ towards)],
+        }
+    return out
+
+
+def lean_errors(fitted: dict, truth: dict) -> dict[str, float]:
+    """Degrees between each segment's direction in the fitted body and the true one (both in their own input
+    camera's level frame, so no alignment enters)."""
+    return {
+        name: float(np.degrees(np.arccos(np.clip(np.dot(fitted[name]["_direction"], truth[name]["_direction"]),
+                                                 -1.0, 1.0))))
+        for name in LEAN_SEGMENTS
+    }  # fmt: skip
+
+
 def evaluate(
     subject: Subject,
     render: Renderer,
@@ -136,7 +186,8 @@ def evaluate(
     max_views: int | None = None,
     splits: tuple[str, ...] = SPLITS,
 ) -> dict:
-    """Metrics of ``render(camera, frame_index) -> (H, W, 3)`` against the subject's ground truth."""
+    """Metrics of ``render(camera, frame_index) -> {"rgb": (H, W, 3), "alpha": (H, W)}`` against the subject's
+    ground truth."""
     out_dir = Path(out_dir)
     lp = Lpips()
     body = subject.body
@@ -162,10 +213,12 @@ def evaluate(
         for cam_name, frame in tqdm(views, desc=split, unit="view", leave=False):
             cam = subject.cameras[cam_name]
             small = cam.scaled(scale)
-            gt = subject.image(cam_name, frame) * subject.mask(cam_name, frame)[..., None]
-            gt = _resize(gt, (small.height, small.width))
+            true_mask = subject.mask(cam_name, frame)
+            gt = _resize(subject.image(cam_name, frame) * true_mask[..., None], (small.height, small.width))
+            true_mask = _resize(true_mask[..., None].astype(np.float32), (small.height, small.width))[..., 0] > 0.5
             index = int(np.nonzero(subject.motion.frame_ids == frame)[0][0])
-            pred = np.clip(render(small, index), 0.0, 1.0)
+            out = render(small, index)
+            pred = np.clip(out["rgb"], 0.0, 1.0)
             posed = body.pose(*subject.motion.frame(index)).vertices
             mask = box_mask(small, posed)
             row = {
@@ -174,6 +227,7 @@ def evaluate(
                 "psnr": psnr(pred, gt, mask),
                 "ssim": ssim_in_rect(pred, gt, mask),
                 "lpips": lp(pred, gt, mask),
+                **silhouette_metrics(out["alpha"], true_mask),
             }
             if split == "novel_view":
                 ref = subject.cameras[subject.input_camera]
@@ -181,24 +235,33 @@ def evaluate(
             rows.append(row)
             err = np.abs(pred - gt).mean(-1, keepdims=True)
             tiles.append(np.concatenate([gt, pred, np.clip(err * 3, 0, 1).repeat(3, -1)], 1))
-        mean = {
-            k: (float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None)
-            for k in ("psnr", "ssim", "lpips")
-        }
-        result[split] = {**mean, "views": len(rows), "per_view": rows}
+        result[split] = {**summary(rows), "per_view": rows}
         if split == "novel_view":
-            rear = [r for r in rows if r["degrees_from_input"] > REAR_DEGREES]
+            lo, hi = SIDE_DEGREES
+            result[split]["side"] = {
+                "degrees": list(SIDE_DEGREES),
+                **summary([r for r in rows if lo < r["degrees_from_input"] <= hi]),
+            }
             result[split]["rear"] = {
                 "degrees": REAR_DEGREES,
-                "views": len(rear),
-                "psnr": float(np.mean([r["psnr"] for r in rear])) if rear else None,
-                "ssim": float(np.mean([r["ssim"] for r in rear])) if rear else None,
+                **summary([r for r in rows if r["degrees_from_input"] > REAR_DEGREES]),
             }
         if tiles:
             shown = np.unique(np.linspace(0, len(tiles) - 1, GRID_ROWS).round().astype(int))  # all round, back included
             grid = np.concatenate([tiles[i] for i in shown], 0)
             write_image(out_dir / f"{split}_grid.png", grid)
     return result
+
+
+METRICS = ("psnr", "ssim", "lpips", "silhouette_iou", "hole_fraction", "spill")
+
+
+def summary(rows: list[dict]) -> dict:
+    """The mean of every metric over ``rows`` (None for a metric that is missing, or with no rows) and their count."""
+    return {
+        "views": len(rows),
+        **{k: (float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None) for k in METRICS},
+    }
 
 
 def _resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -243,20 +306,29 @@ def evaluate_run(
             )
         sim = umeyama(src, dst)
         residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
+        fitted_lean = lean_angles(fitted.body, pose, fitted.cameras[fitted.input_camera])
+        true_lean = lean_angles(
+            subject.body, subject.motion.frame(subject.input_index), subject.cameras[subject.input_camera]
+        )
         extra["alignment"] = {
             "fitted_subject": str(report["subject"]),
             "scale": sim[0],
             "vertex_error_m": {"mean": float(residual.mean()), "max": float(residual.max())},
+            "lean_deg": {
+                "fitted": {k: {a: b for a, b in v.items() if a != "_direction"} for k, v in fitted_lean.items()},
+                "true": {k: {a: b for a, b in v.items() if a != "_direction"} for k, v in true_lean.items()},
+                "error": lean_errors(fitted_lean, true_lean),
+            },
         }
 
-        def render(camera: Camera, index: int) -> np.ndarray:
-            return avatar.render_pose(camera_in_frame(camera, *sim), *pose, n_samples)["rgb"]
+        def render(camera: Camera, index: int) -> dict[str, np.ndarray]:
+            return avatar.render_pose(camera_in_frame(camera, *sim), *pose, n_samples)
 
         splits: tuple[str, ...] = ("novel_view",)
     else:
 
-        def render(camera: Camera, index: int) -> np.ndarray:
-            return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)["rgb"]
+        def render(camera: Camera, index: int) -> dict[str, np.ndarray]:
+            return avatar.render_pose(camera, *subject.motion.frame(index), n_samples)
 
         splits = SPLITS
     out = Path(out)
