@@ -38,8 +38,10 @@ def test_batch_on_local_ray(inputs, tmp_path, capsys, monkeypatch):
     out = tmp_path / "batch"
     args = ["batch", str(inputs), "--out", str(out), "--size", "32", *TINY]
     assert main(args) == 2  # one job failed
-    err = capsys.readouterr().err
-    assert "job broken failed" in err and "broken.png: unreadable photo" in err and "Traceback" not in err
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()[-1]
+    assert "1 of 3 jobs failed; job broken" in err and "broken.png: unreadable photo" in err
+    assert "Traceback" not in captured.err and "job broken failed" in captured.out
     jobs = {r["name"]: r for r in _summary(out)["jobs"]}
     assert set(jobs) == {"broken", "subject5", "subject7"}
     assert jobs["broken"]["status"] == "failed" and "unreadable photo" in jobs["broken"]["error"]
@@ -156,3 +158,62 @@ def test_thread_pools_follow_the_cpus_given(prefix, env, expect):
     done = subprocess.run([*prefix, sys.executable, "-c", code], env=base | env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-1000:]
     assert done.stdout.split()[-4:] == [str(expect)] * 3 + [str(min(expect, 8))]
+
+
+def _descendants(pid: int) -> set[int]:
+    """Every living process below ``pid`` (read from /proc)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.add(child)
+            todo.append(child)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_batch_and_its_ray_agents(inputs, tmp_path):
+    """Ray's agents (raylet, GCS, workers) outlived a killed batch driver by over a minute."""
+    cmd = [
+        sys.executable, "-m", "elicit_diffrender.apps.cli", "batch", str(inputs / "subject5"), "--out",
+        str(tmp_path / "batch"), "--steps", "fit", *[x for kv in FIT_TINY for x in ("--set", kv)],
+        "--set", "init_steps=2000", "--set", "steps=2000",
+    ]  # fmt: skip
+    driver = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 180
+    agents: set[int] = set()
+    while time.monotonic() < deadline and not any("raylet" in _cmdline(p) for p in agents):
+        time.sleep(1)
+        agents |= _descendants(driver.pid)
+    time.sleep(5)  # the fit task is running in a Ray worker
+    agents |= _descendants(driver.pid)
+    assert any("raylet" in _cmdline(p) for p in agents), "Ray did not start"
+    driver.send_signal(15)
+    err = driver.communicate(timeout=60)[1]
+    assert driver.returncode == 128 + 15 and "Traceback" not in err, err[-2000:]
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(_alive(p) for p in agents):
+        time.sleep(0.5)
+    left = [f"{p}: {_cmdline(p)[:80]}" for p in agents if _alive(p)]
+    assert not left, left
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""

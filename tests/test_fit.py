@@ -382,6 +382,8 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     assert again.returncode == 2 and "--resume" in again.stderr
     stale = run / f".{CHECKPOINT}.k1ll3d.safetensors"
     stale.write_bytes((run / CHECKPOINT).read_bytes()[:1000])
+    safetensors_temp = run / ".tmpAb12Cd"  # what safetensors itself leaves when killed while writing
+    safetensors_temp.write_bytes(b"\0" * 1000)
     done = subprocess.run(cmd + ["--resume"], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     log = (run / "log.txt").read_text()
@@ -390,4 +392,4 @@ def test_kill_and_resume(tmp_path, tiny_subject):
     report = json.loads((run / "run.json").read_text())
     assert report["encoder"]["kind"] == "mirror" and "weights-free fallback" in report["encoder"]["name"]
     assert "mirror" in report["final_losses"]["stage2"] and "semantic" not in report["final_losses"]["stage2"]
-    assert (run / "avatar.safetensors").is_file() and not stale.exists()
+    assert (run / "avatar.safetensors").is_file() and not stale.exists() and not safetensors_temp.exists()

@@ -4,6 +4,8 @@ model; a fit then picks the fetched weights up with no flag."""
 import hashlib
 import http.server
 import json
+import os
+import signal
 import threading
 
 import pytest
@@ -38,6 +40,8 @@ def hub(tmp_path, monkeypatch):
     data = blob.read_bytes()
     etag = hashlib.sha256(data).hexdigest()
     requests = []
+    # What the server answers; tests change it to play a hostile or broken server.
+    serve = {"data": data, "etag": etag, "commit": COMMIT, "extra_length": 0}
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def _head(self) -> bool:
@@ -53,9 +57,9 @@ def hub(tmp_path, monkeypatch):
                 self.end_headers()
                 return False
             self.send_response(200)
-            self.send_header("Content-Length", str(len(data)))
-            self.send_header("ETag", f'"{etag}"')
-            self.send_header("X-Repo-Commit", COMMIT)
+            self.send_header("Content-Length", str(len(serve["data"]) + serve["extra_length"]))
+            self.send_header("ETag", f'"{serve["etag"]}"')
+            self.send_header("X-Repo-Commit", serve["commit"])
             self.end_headers()
             return True
 
@@ -64,7 +68,7 @@ def hub(tmp_path, monkeypatch):
 
         def do_GET(self):  # noqa: N802
             if self._head():
-                self.wfile.write(data)
+                self.wfile.write(serve["data"])
 
         def log_message(self, *args):
             pass
@@ -82,12 +86,12 @@ def hub(tmp_path, monkeypatch):
         MODEL,
         {TAG: pretrained._pcfg(hf_hub=f"{REPO}/"), **{t: pretrained._pcfg(url=u) for t, u in urls.items()}},
     )
-    yield address, model, requests
+    yield address, model, requests, serve
     server.shutdown()
 
 
 def test_fetch_list_and_pick_up(hub, capsys):
-    endpoint, model, requests = hub
+    endpoint, model, requests, _ = hub
     assert resolve_clip_weights(MODEL, TAG) is None
     assert main(["weights", "list"]) == 0
     assert "no CLIP weights on disk" in capsys.readouterr().out
@@ -108,7 +112,7 @@ def test_fetch_list_and_pick_up(hub, capsys):
 
 
 def test_fetch_failures_are_one_line(hub, capsys):
-    endpoint, _, _ = hub
+    endpoint, _, _, _ = hub
     assert main(["weights", "fetch", MODEL, "no-such-tag", "--endpoint", endpoint]) == 2
     err = capsys.readouterr().err.strip()
     assert "no pretrained tag 'no-such-tag'" in err and len(err.splitlines()) == 1
@@ -126,3 +130,76 @@ def test_fetch_by_url_checks_the_address_sha256(hub, tmp_path, capsys):
     assert "does not match" in capsys.readouterr().err
     assert resolve_clip_weights(MODEL, "badsha") is None
     assert not list((tmp_path / "home" / ".cache" / "clip").glob(".*partial"))
+
+
+def _files(root) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() or p.is_symlink()}
+
+
+def test_server_headers_never_become_paths(hub, tmp_path, capsys):
+    """An ETag of ``../../x`` and a commit of ``../../y`` wrote files of the server's choosing outside the cache."""
+    endpoint, _, _, serve = hub
+    serve["etag"], serve["commit"] = "../../x", "../../y"
+    before = _files(tmp_path)
+    assert main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint]) == 0
+    added = _files(tmp_path) - before
+    repo_folder = "hub-cache/models--elicit--tiny-weights/"
+    assert added and all(p.startswith(repo_folder) for p in added), added
+    assert not any(p.endswith(("/x", "/y")) or "/y/" in p for p in added), added
+    path = resolve_clip_weights(MODEL, TAG)
+    assert path is not None and hashlib.sha256(open(path, "rb").read()).hexdigest() in str(os.path.realpath(path))
+
+
+def test_wrong_content_is_refused_and_not_stored(hub, tmp_path, capsys):
+    """A server answering with other content: nothing stored, one line, and the next fit is not poisoned."""
+    from safetensors.torch import save_file
+
+    endpoint, _, _, serve = hub
+    save_file({"visual.proj": torch.zeros(3)}, str(tmp_path / "wrong.safetensors"))
+    for payload in ((tmp_path / "wrong.safetensors").read_bytes(), b"<html>rate limited</html>"):
+        serve["data"], serve["etag"] = payload, hashlib.sha256(payload).hexdigest()
+        assert main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "refused" in err and len(err.splitlines()) == 1, err
+        assert resolve_clip_weights(MODEL, TAG) is None
+        blobs = tmp_path / "hub-cache" / "models--elicit--tiny-weights" / "blobs"
+        assert not blobs.exists() or not list(blobs.iterdir())
+    assert main(["weights", "list"]) == 0 and "no CLIP weights on disk" in capsys.readouterr().out
+
+
+def test_truncated_body_gives_up_and_leaves_nothing(hub, tmp_path, capsys):
+    """A body shorter than its Content-Length was retried forever, leaving a large ``.incomplete`` file."""
+    endpoint, _, requests, serve = hub
+    serve["extra_length"] = 1000
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("the fetch retried for over 60 s"))
+    signal.alarm(60)
+    try:
+        code = main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint])
+    finally:
+        signal.alarm(0)
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert "gave up after 3 attempts" in err and len(err.splitlines()) == 1, err
+    assert len(requests) == 3
+    left = [p for p in _files(tmp_path) if p.startswith("hub-cache")]
+    assert not left, left
+
+
+def test_poisoned_cache_falls_back_named_and_fetch_repairs_it(hub, capsys):
+    """Bad bytes in the cache must not block a fit: ``auto`` reports the file and falls back; ``clip`` says why."""
+    from elicit_diffrender.model.encoders import EncoderError
+
+    endpoint, _, _, _ = hub
+    assert main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint]) == 0
+    path = resolve_clip_weights(MODEL, TAG)
+    blob = os.path.realpath(path)
+    with open(blob, "wb") as f:
+        f.write(b"\x00" * 4096)
+    enc, info = load_encoder("auto", MODEL, TAG)
+    assert enc is None and info.kind == "mirror" and path in info.reason and "fell back" in info.reason
+    with pytest.raises(EncoderError):
+        load_encoder("clip", MODEL, TAG)
+    capsys.readouterr()
+    assert main(["weights", "fetch", MODEL, TAG, "--endpoint", endpoint]) == 0
+    enc, info = load_encoder("auto", MODEL, TAG)
+    assert info.kind == "clip"

@@ -21,15 +21,18 @@ from __future__ import annotations
 
 import logging
 import shutil
+import signal
 import socket
 import tempfile
+import threading
 import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..core.checks import inside
 from ..core.errors import ElicitError, error_line
-from ..core.io import write_json, write_text
+from ..core.io import read_json, write_json, write_text
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
 MASK_SUFFIX = "_mask"  # photo.jpg's person mask, if given, is photo_mask.png beside it
@@ -67,9 +70,17 @@ def _is_photo(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in PHOTO_SUFFIXES and not path.stem.endswith(MASK_SUFFIX)
 
 
+def job_name(stem: str) -> str:
+    """A job folder's name from an input's name: letters, digits, '.', '_' and '-' kept, anything else '_', no
+    leading dots (a photo named ``...png`` must not become the job ``..``, the folder above ``--out``)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip(".") or "job"
+
+
 def _photo_job(path: Path) -> Job:
     mask = path.with_name(path.stem + MASK_SUFFIX + ".png")
-    return Job(path.stem, path, mask if mask.is_file() else None)
+    return Job(job_name(path.stem), path, mask if mask.is_file() else None)
 
 
 def find_jobs(inputs: list[Path]) -> list[Job]:
@@ -79,10 +90,10 @@ def find_jobs(inputs: list[Path]) -> list[Job]:
         if _is_photo(path):
             jobs.append(_photo_job(path))
         elif path.is_dir() and _is_subject(path):
-            jobs.append(Job(path.name, path))
+            jobs.append(Job(job_name(path.name), path))
         elif path.is_dir():
             found = [
-                _photo_job(p) if p.is_file() else Job(p.name, p)
+                _photo_job(p) if p.is_file() else Job(job_name(p.name), p)
                 for p in sorted(path.iterdir())
                 if _is_photo(p) or (p.is_dir() and _is_subject(p))
             ]
@@ -102,11 +113,10 @@ def find_jobs(inputs: list[Path]) -> list[Job]:
 
 
 def _read_json(path: Path) -> dict:
-    import json
-
+    """A job's own JSON file ({} when it is missing or damaged: the step that writes it runs again)."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        data = read_json(path)
+    except ElicitError:
         return {}
     return data if isinstance(data, dict) else {}
 
@@ -169,7 +179,8 @@ def run_job(job: Job, job_dir: Path, steps: tuple[str, ...], config: dict, rende
             if not (run_dir / AVATAR_FILE).is_file():
                 subject = load_subject(subject_dir)
                 fit(subject, FitConfig(**config).validate(), run_dir, resume=(run_dir / CHECKPOINT).is_file())
-            record["fit_seconds"] = _read_json(run_dir / "run.json").get("seconds", {}).get("total")
+            seconds = _read_json(run_dir / "run.json").get("seconds")
+            record["fit_seconds"] = seconds.get("total") if isinstance(seconds, dict) else None
             done.append("fit")
         if "render" in steps:
             if not (job_dir / "contact_sheet.png").is_file():
@@ -215,12 +226,15 @@ def start_ray(address: str | None, stage_dir: Path) -> None:
     from ..core.device import cpus_given
 
     quiet = {"log_to_driver": False, "logging_level": logging.ERROR}
+    on_sigterm = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     if address is None:
         ray.init(
             address="local", num_cpus=cpus_given(), include_dashboard=False, object_store_memory=256 * 1024**2, **quiet
         )
     else:
         ray.init(address=address, runtime_env={"py_modules": [str(stage_package(stage_dir))]}, **quiet)
+    if callable(on_sigterm):  # Ray's own handler would end the driver without stopping its agents
+        signal.signal(signal.SIGTERM, on_sigterm)
 
 
 def job_row(job: Job, job_dir: Path, out: Path) -> dict:
@@ -287,7 +301,12 @@ def run_batch(
     from ..core.device import cpus_given
 
     t0 = time.perf_counter()
-    jobs, out = find_jobs([p.resolve() for p in inputs]), out.resolve()  # the same paths on every node
+    try:
+        jobs, out = find_jobs([p.resolve() for p in inputs]), out.resolve()  # the same paths on every node
+    except (RuntimeError, OSError) as exc:  # a symbolic link loop, an unreadable folder
+        raise BatchError(f"cannot read the inputs or --out ({exc})") from None
+    for job in jobs:  # every job folder lies strictly inside --out
+        inside(out, job.name, f"job {job.name!r} ({job.source})", BatchError)
     if address is None and cpus_per_fit > cpus_given():
         raise BatchError(f"--cpus-per-fit {cpus_per_fit}: this machine gives this process {cpus_given()} CPUs")
     out.mkdir(parents=True, exist_ok=True)
@@ -309,7 +328,10 @@ def run_batch(
                 pending = {task.remote(job, out / job.name, steps, config, render_size): job for job in todo}
                 show(bar, rows, min(len(pending), slots))
                 while pending:
-                    (ref,), _ = ray.wait(list(pending), num_returns=1)
+                    ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)  # a signal is handled between
+                    if not ready:
+                        continue
+                    (ref,) = ready
                     job = pending.pop(ref)
                     try:
                         ray.get(ref)

@@ -36,7 +36,7 @@ SCANS = {
 }
 SCAN_CREDITS = {  # the credit lines the licence asks for wherever their renders or results are shown
     "carla": '"Carla Rigged 001" by renderpeople, CC BY 4.0 (sketchfab.com/3d-models/carla-rigged-001-rigged-3d-'
-    'business-women-acf520f450d14dd799f98a6fede3edf5)',
+    "business-women-acf520f450d14dd799f98a6fede3edf5)",
     "f3": '"Rigged Standing Asian Female Character Idle Pose" by florah, CC BY 4.0 (sketchfab.com/3d-models/rigged-'
     "standing-asian-female-character-idle-pose-b31b024797194829af4637fbfb6838b7)",
     "man_in_suit": '"Man Dressed In Suit" by 3d-character-br, CC BY 4.0 (sketchfab.com/3d-models/man-dressed-in-suit-'

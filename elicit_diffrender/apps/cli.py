@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import threading
+import warnings
 from pathlib import Path
 
-from ..core.checks import MAX_MEGAPIXELS, positive_float, positive_int, unit_fraction
+from ..core.checks import MAX_MEGAPIXELS, float_between, int_between, positive_float, positive_int, unit_fraction
 from ..core.errors import ElicitError, error_line
 from ..fit.config import PRESETS, FitConfig
 from ..inputs.people import PEOPLE
+
+MAX_IMAGE_SIZE = 8192  # pixels on a side of anything rendered
 
 
 class Parser(argparse.ArgumentParser):
@@ -101,11 +107,15 @@ def _batch(args: argparse.Namespace) -> None:
     summary = run_batch(args.inputs, args.out, steps, config_dict(cfg), args.address, args.cpus_per_fit, args.size)
     failed = [r for r in summary["jobs"] if r["status"] == "failed"]
     for r in failed:
-        print(f"elicit batch: job {r['name']} failed: {r['error']}", file=sys.stderr)
+        print(f"job {r['name']} failed: {r['error']}")
     n, counts = len(summary["jobs"]), summary["counts"]
     print(f"{counts['done']} done, {counts['failed']} failed of {n}; summary: {args.out / 'summary.md'}")
     if failed:
-        raise ElicitError(f"{len(failed)} of {n} jobs failed (their errors are above)")
+        first = failed[0]
+        raise ElicitError(
+            f"{len(failed)} of {n} jobs failed; job {first['name']}: {first['error']} (each job's error: "
+            f"{args.out / 'summary.md'})"
+        )
 
 
 def _eval(args: argparse.Namespace) -> None:
@@ -209,16 +219,17 @@ def _weights(args: argparse.Namespace) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="elicit", description="ELICIT: one-shot animatable avatars from a single photo")
+    p.add_argument("--verbose", action="store_true", help="Warp's banner and the fit's log lines on stderr too")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synth", help="write a synthetic clothed subject (elicit-subject/1)")
-    s.add_argument("--seed", type=int, default=None, help="draws a procedural person (default 0)")
+    s.add_argument("--seed", type=int_between(0, 2**32 - 1), default=None, help="draws a procedural person (default 0)")
     s.add_argument("--person", choices=sorted(PEOPLE), help="a named person: clothes and posture of real people")
     s.add_argument("--mesh", type=Path, help="a textured OBJ of a person (metres, +y up, facing +z) instead")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--motion", default="walk_in_place", help="built-in target motion")
-    s.add_argument("--size", type=positive_int, default=512, help="image size in pixels")
-    s.add_argument("--spp", type=positive_int, default=32, help="path-tracing samples per pixel")
+    s.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=512, help="image size in pixels")
+    s.add_argument("--spp", type=int_between(1, 4096), default=32, help="path-tracing samples per pixel")
     s.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     s.set_defaults(func=_synth)
 
@@ -241,9 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     v.add_argument("--cameras", default="orbit", help="orbit, ring, input, a rig .xml, or a subject folder")
     v.add_argument("--out", type=Path, required=True, help="OUT.mp4, OUT.gif or a folder for PNG frames")
-    v.add_argument("--size", type=positive_int, default=256, help="image size in pixels")
-    v.add_argument("--samples", type=positive_int, default=64, help="samples per ray")
-    v.add_argument("--fps", type=positive_float, default=30.0)
+    v.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=256, help="image size in pixels")
+    v.add_argument("--samples", type=int_between(1, 1024), default=64, help="samples per ray")
+    v.add_argument("--fps", type=float_between(0.1, 1000.0), default=30.0)
     v.set_defaults(func=_render)
 
     x = sub.add_parser("export", help="the avatar as an animated glTF binary (.glb): mesh, colours, skeleton, motion")
@@ -253,9 +264,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--motion", default="walk_in_place", help="built-in motion name, motion .npz, or none (default: walk_in_place)"
     )
     x.add_argument(
-        "--resolution", type=positive_float, default=None, help="marching-cubes voxel, metres (default: the avatar's)"
+        "--resolution",
+        type=float_between(0.002, 0.5),
+        default=None,
+        help="marching-cubes voxel, metres (default: the avatar's)",
     )
-    x.add_argument("--faces", type=positive_int, default=None, help="decimate to about this many faces")
+    x.add_argument("--faces", type=int_between(100, 10_000_000), default=None, help="decimate to about this many faces")
     x.set_defaults(func=_export)
 
     page = sub.add_parser("view", help="a self-contained web page that shows the avatar and plays its animation")
@@ -281,8 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--address", default=None, help="a Ray cluster (auto, HOST:PORT or ray://HOST:PORT); default: local Ray"
     )
-    b.add_argument("--cpus-per-fit", type=positive_int, default=1, help="CPUs each job's threads use (default 1)")
-    b.add_argument("--size", type=positive_int, default=256, help="video and contact-sheet size in pixels")
+    b.add_argument("--cpus-per-fit", type=int_between(1, 1024), default=1, help="CPUs each job's threads use")
+    b.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=256, help="video and sheet size, pixels")
     b.set_defaults(func=_batch)
 
     e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
@@ -303,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", type=Path, required=True)
     q.add_argument("--mask", type=Path, default=None, help="person mask, 1-, 8- or 16-bit (above half is the person)")
     q.add_argument("--params", type=Path, default=None, help="ELICIT/CLIFF gt_params.npz (focal_l, pred_joints)")
-    q.add_argument("--focal", type=positive_float, default=None, help="focal length in pixels")
+    q.add_argument("--focal", type=float_between(1.0, 1e6), default=None, help="focal length in pixels")
     q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
     q.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     q.add_argument(
@@ -317,8 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--out", type=Path, required=True)
     i.add_argument("--motion", default="walk_in_place", help="elicit-wild: built-in target motion")
     i.add_argument("--smpl", default=None, help="SMPL model file or folder (else ELICIT_SMPL_DIR)")
-    i.add_argument("--frames", type=int, nargs="*", default=None, help="zju: frame ids")
-    i.add_argument("--input-camera", type=int, default=0, help="zju: index of the input camera")
+    i.add_argument("--frames", type=int_between(0, 10**7), nargs="*", default=None, help="zju: frame ids")
+    i.add_argument("--input-camera", type=int_between(0, 10**4), default=0, help="zju: index of the input camera")
     i.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     i.set_defaults(func=_import)
 
@@ -333,22 +347,43 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("rig", help="write a camera rig as Mitsuba scene XML")
     r.add_argument("kind", choices=["ring", "orbit"])
     r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--n", type=positive_int, default=23, help="number of cameras (orbit: frames)")
-    r.add_argument("--radius", type=positive_float, default=3.0)
-    r.add_argument("--elevation", type=float, default=0.0, help="degrees")
-    r.add_argument("--look-at", type=float, nargs=3, default=(0.0, 0.0, 0.0))
-    r.add_argument("--focal", type=positive_float, default=650.0, help="pixels")
-    r.add_argument("--size", type=positive_int, default=512)
+    r.add_argument("--n", type=int_between(1, 3600), default=23, help="number of cameras (orbit: frames)")
+    r.add_argument("--radius", type=float_between(0.01, 1000.0), default=3.0, help="metres")
+    r.add_argument(
+        "--elevation",
+        type=float_between(-89.0, 89.0),
+        default=0.0,
+        help="degrees (a camera at the pole would look along its own up)",
+    )
+    r.add_argument("--look-at", type=float_between(-1e4, 1e4), nargs=3, default=(0.0, 0.0, 0.0), help="metres")
+    r.add_argument("--focal", type=float_between(1.0, 1e6), default=650.0, help="pixels")
+    r.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=512)
     r.set_defaults(func=_rigs)
     return p
 
 
+def _terminate(signum, frame) -> None:
+    """SIGTERM ends a command as an interruption does: every ``finally`` runs (half-written folders are removed,
+    Ray is shut down) before the process exits with ``128 + signum``."""
+    _TERMINATED.append(signum)
+    raise SystemExit(128 + signum)
+
+
+_TERMINATED: list[int] = []  # the signal that ended this command (a library may rewrap its SystemExit)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.verbose:
+        os.environ["ELICIT_WARP_VERBOSE"] = "1"
+    else:  # libraries' warnings (torch's, numpy's) would stand between the progress bar and an error's one line
+        warnings.simplefilter("ignore")
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         args.func(args)
-    except ElicitError as exc:
-        print(f"elicit {args.command}: error: {exc}", file=sys.stderr)
+    except ElicitError as exc:  # one line, even where a library's message it wraps has several
+        print(f"elicit {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except OSError as exc:  # a read-only folder, a full disk: nothing half-written is left in place
         print(f"elicit {args.command}: error: {error_line(exc)}", file=sys.stderr)
@@ -356,6 +391,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"elicit {args.command}: interrupted", file=sys.stderr)
         return 130
+    except SystemExit:
+        if _TERMINATED:
+            print(f"elicit {args.command}: terminated", file=sys.stderr)
+            return 128 + _TERMINATED[0]
+        raise
     return 0
 
 

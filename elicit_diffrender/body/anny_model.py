@@ -14,6 +14,7 @@ import threading
 import numpy as np
 import torch
 
+from ..core.device import init_warp
 from ..core.geometry import axis_angle_to_matrix
 from .base import PART_NAMES, BodyModel, BodyModelError, PosedBody, apply_global, check_pose
 
@@ -62,9 +63,16 @@ def _part_of(name: str) -> int:
 def anny_model():
     """The shared Anny torch module (the first call in a fresh cache takes about a minute)."""
     with _LOCK:
-        import anny
+        return import_anny().Anny().to(torch.float64)
 
-        return anny.Anny().to(torch.float64)
+
+def import_anny():
+    """The ``anny`` package, imported after Warp is initialised our way (its import calls ``wp.init()``, whose
+    no-GPU banner would otherwise reach stderr)."""
+    init_warp()
+    import anny
+
+    return anny
 
 
 class AnnyBody(BodyModel):

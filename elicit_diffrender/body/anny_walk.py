@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from .anny_model import ANNY_TO_WORLD, AnnyBody
+from .anny_model import ANNY_TO_WORLD, AnnyBody, import_anny
 
 WALK_CYCLE_FILE = Path("mpfb2") / "walkcycles" / "crappy_experimental_female.json"
 # MPFB's root bone runs from behind the pelvis to its front (Blender coordinates of the default rig):
@@ -36,9 +36,7 @@ LIMBS = [
 
 
 def walk_cycle_path() -> Path:
-    import anny
-
-    return Path(anny.__file__).parent / "data" / WALK_CYCLE_FILE
+    return Path(import_anny().__file__).parent / "data" / WALK_CYCLE_FILE
 
 
 def _bezier(keys: list[tuple[float, float, list, list]], t: np.ndarray) -> np.ndarray:

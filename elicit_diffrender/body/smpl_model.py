@@ -52,8 +52,12 @@ def resolve_model_file(model: str, gender: str, model_path: str | Path | None) -
             f"https://{model}.is.tue.mpg.de and pass their path (body.model_path in subject.json, or "
             f"ELICIT_SMPL_DIR=/path/to/models)"
         )
+    if not isinstance(root, (str, Path)):
+        raise BodyModelError(f"{model}: model_path must be a path, got a {type(root).__name__}")
     root = Path(root).expanduser()
     if root.is_file():
+        if root.suffix not in (".pkl", ".npz"):  # a path from a file's header must not open anything else
+            raise BodyModelError(f"{model}: model_path {str(root)!r} is not a model file (.pkl or .npz) or a folder")
         return root
     stem = f"{model.upper()}_{gender.upper()}"
     for ext in (".pkl", ".npz"):

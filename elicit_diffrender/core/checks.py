@@ -21,6 +21,24 @@ class InputError(ElicitError):
     """An input file or value that cannot be used."""
 
 
+def safe_name(name: object, where: str, error: type[ElicitError] = InputError) -> str:
+    """``name`` as one plain path component (a job, camera or file name that data gives): a non-empty string
+    with no path separator, no NUL and not ``.`` or ``..``, so that ``folder / name`` stays in ``folder``."""
+    if not isinstance(name, str) or name in ("", ".", "..") or len(name) > 255 or any(c in name for c in "/\\\0"):
+        raise error(f"{where}: {name!r} is not a plain name (no path separator, not '.' or '..', at most 255 long)")
+    return name
+
+
+def inside(folder: Path, relative: str | Path, where: str, error: type[ElicitError] = InputError) -> Path:
+    """``folder / relative``, resolved, when it lies inside ``folder`` (symbolic links followed); else one
+    ``error`` naming ``where``: a path from data never reaches outside the folder it belongs to."""
+    root = Path(folder).resolve()
+    path = (root / relative).resolve()
+    if path == root or root not in path.parents:
+        raise error(f"{where}: {str(relative)!r} leads outside {folder}")
+    return path
+
+
 def numeric(value, where: str, shape: tuple[int, ...] | None = None, error: type[ElicitError] = InputError):
     """``value`` as a finite float64 array of ``shape`` (-1: any length on that axis). ``where`` names the
     field, as in "motion.npz field 'pose'"."""
@@ -43,21 +61,29 @@ def numeric(value, where: str, shape: tuple[int, ...] | None = None, error: type
 
 def _decode(path: Path, what: str, expect_hw, max_megapixels: float, error) -> tuple[np.ndarray, float]:
     """An image file's pixels and their full-scale value (1 for 1-bit, 255 for 8-bit, 65535 for 16-bit);
-    its size is checked before anything is decoded."""
-    from PIL import Image, UnidentifiedImageError
+    its size is checked before anything is decoded (this check replaces Pillow's own, which would end in a
+    traceback), and its EXIF orientation is applied, as every photo viewer does."""
+    from PIL import Image, ImageOps, UnidentifiedImageError
 
     if not path.is_file():
         raise error(f"{path}: {what} not found")
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
     try:
         img = Image.open(path)
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
         raise error(f"{path}: unreadable {what} ({exc})") from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
     megapixels = img.width * img.height / 1e6
     if megapixels > max_megapixels:
         raise error(
             f"{path}: {what} is {img.width}x{img.height} ({megapixels:.0f} MP), above the {max_megapixels:g} MP "
             "limit; shrink it, or raise the limit with --max-megapixels"
         )
+    try:
+        img = ImageOps.exif_transpose(img)
+    except (OSError, ValueError, SyntaxError) as exc:  # a damaged EXIF block or pixel data
+        raise error(f"{path}: unreadable {what} ({exc})") from None
     if expect_hw is not None and (img.height, img.width) != tuple(expect_hw):
         raise error(
             f"{path}: {what} is {img.width}x{img.height}, expected {expect_hw[1]}x{expect_hw[0]} "
@@ -132,6 +158,36 @@ def positive_float(raw: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {raw!r}")
     return value
+
+
+def int_between(lo: int, hi: int):
+    """An argparse type: an integer in [lo, hi] (a bound keeps the work a number implies within memory and time)."""
+
+    def parse(raw: str) -> int:
+        try:
+            value = int(raw)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {raw!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi}], got {raw!r}")
+        return value
+
+    return parse
+
+
+def float_between(lo: float, hi: float):
+    """An argparse type: a finite number in [lo, hi]."""
+
+    def parse(raw: str) -> float:
+        try:
+            value = float(raw)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"must be a number in [{lo:g}, {hi:g}], got {raw!r}")
+        return value
+
+    return parse
 
 
 def unit_fraction(raw: str) -> float:

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
 
-# Set before anything can initialise Warp: quiet unless asked, optional kernel cache location.
-wp.config.log_level = wp.LOG_INFO if os.environ.get("ELICIT_WARP_VERBOSE") else wp.LOG_WARNING
+# Set before anything can initialise Warp: the optional kernel cache location.
 if os.environ.get("ELICIT_WARP_CACHE"):
     wp.config.kernel_cache_dir = os.environ["ELICIT_WARP_CACHE"]
 
@@ -21,13 +22,32 @@ _WARP_READY = False
 
 
 def init_warp() -> None:
-    """Initialise Warp once (thread-safe)."""
+    """Initialise Warp once (thread-safe); quiet unless ``ELICIT_WARP_VERBOSE`` is set (``elicit --verbose``)."""
     global _WARP_READY
     with _INIT_LOCK:
         if _WARP_READY:
             return
-        wp.init()
+        wp.config.log_level = wp.LOG_INFO if os.environ.get("ELICIT_WARP_VERBOSE") else wp.LOG_WARNING
+        if os.environ.get("ELICIT_WARP_VERBOSE"):
+            wp.init()
+        else:
+            with _native_stderr_silenced():
+                wp.init()  # its native code prints a no-GPU banner straight to stderr
         _WARP_READY = True
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 points at /dev/null inside the block (what C code prints there is dropped)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def default_device() -> torch.device:

@@ -30,9 +30,12 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
         write(Path(tmp))
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; give them the usual permissions
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) or type(exc).__name__ == "SafetensorError":  # a full disk, a read-only folder
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).splitlines()[0][:200]
+            raise ElicitError(f"{path}: cannot write ({reason})") from None
         raise
     return path
 
@@ -69,6 +72,37 @@ def folder_in_place(path: str | Path, force: bool = False) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+MAX_JSON_BYTES = 64 * 2**20  # a subject's, run's or job's JSON file is a few kilobytes
+
+
+def parse_json(text: str | bytes, where: str, error: type[ElicitError] = ElicitError) -> Any:
+    """JSON text (bytes must be UTF-8) as Python values; invalid UTF-8, bad syntax, nesting too deep for the
+    parser and integers of more digits than Python converts are each one ``error`` naming ``where``."""
+    try:
+        if isinstance(text, bytes):
+            text = text.decode("utf-8")
+        return json.loads(text)
+    except UnicodeDecodeError as exc:
+        raise error(f"{where}: not UTF-8 text (byte {exc.start})") from None
+    except RecursionError:
+        raise error(f"{where}: not valid JSON (nested too deep)") from None
+    except ValueError as exc:  # JSONDecodeError, and the digit limit on integers
+        raise error(f"{where}: not valid JSON ({exc})") from None
+
+
+def read_json(path: str | Path, error: type[ElicitError] = ElicitError) -> Any:
+    """A JSON file's values (see :func:`parse_json`); a missing, unreadable or oversized file is one ``error``."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise error(f"{path}: {size} bytes, more than a JSON file here may hold ({MAX_JSON_BYTES})")
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+    return parse_json(data, str(path), error)
 
 
 def write_text(path: str | Path, text: str) -> Path:
@@ -168,6 +202,6 @@ def read_tensors(path: str | Path) -> Any:
     if header is None:
         raise ValueError("a safetensors file without elicit's header")
     try:
-        return join_tensors(json.loads(header), tensors)
-    except (json.JSONDecodeError, KeyError) as exc:
+        return join_tensors(parse_json(header, "header", ElicitError), tensors)
+    except (ValueError, KeyError, TypeError) as exc:  # ElicitError is a ValueError
         raise ValueError(f"damaged header ({type(exc).__name__}: {exc})") from None

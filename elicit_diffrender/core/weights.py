@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import hashlib
 import os
-import shutil
+import re
 import tempfile
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,28 +57,123 @@ def hub_source(cfg: dict) -> tuple[str, str] | None:
     return repo, filename or HUB_FILE
 
 
+MAX_WEIGHTS_BYTES = 4 << 30  # larger than any open_clip checkpoint we use; a server sending more is refused
+ATTEMPTS = 3  # downloads tried before giving up (a truncated or dropped body counts as one)
+HEX40 = re.compile(r"[0-9a-f]{40}")
+HEX64 = re.compile(r"[0-9a-f]{64}")
+
+
 def fetch(model: str, tag: str, endpoint: str | None = None) -> Path:
     """Download the weights of open_clip's ``model``/``tag`` into the local cache and return the file.
 
-    ``endpoint`` replaces the Hugging Face hub's address (a mirror), as ``$HF_ENDPOINT`` does.
+    ``endpoint`` replaces the Hugging Face hub's address (a mirror), as ``$HF_ENDPOINT`` does. The server is not
+    trusted: no path is built from what it sends (the blob is named by the SHA-256 we compute), the body must have
+    the announced length, and what arrives must pass :func:`check_weights` (the architecture's tensor names and
+    shapes) or, for a URL route, the SHA-256 in its address; a file that fails is deleted, never stored. A cached
+    file that passes is reused.
     """
     cfg = pretrained_cfg(model, tag)
     source = hub_source(cfg)
-    try:
-        if source is not None:
-            from huggingface_hub import hf_hub_download
+    if source is None and not cfg.get("url"):
+        raise WeightsError(f"open_clip's tag {model}/{tag} names neither a hub repository nor a URL")
+    if source is None:
+        return _fetch_url(cfg["url"], url_cache())
+    cached = resolve_clip_weights(model, tag)
+    if cached is not None and check_weights(model, Path(cached)) is None:
+        return Path(cached)
+    base = (endpoint or os.environ.get("HF_ENDPOINT") or "https://huggingface.co").rstrip("/")
+    repo, filename = source
+    root = hub_cache() / ("models--" + repo.replace("/", "--"))
+    tmp, sha, headers = _download(f"{base}/{repo}/resolve/main/{filename}", root / "blobs")
+    problem = check_weights(model, tmp)
+    linked = headers.get("X-Linked-Etag", headers.get("ETag", "")).strip('"')
+    if problem is None and HEX64.fullmatch(linked) and linked != sha:
+        problem = f"its SHA-256 {sha} differs from the {linked} the server announced"
+    if problem is not None:
+        tmp.unlink(missing_ok=True)
+        raise WeightsError(f"{base}/{repo}: refused the download: {problem}")
+    commit = headers.get("X-Repo-Commit", "")
+    return _store_hub(tmp, sha, root, commit if HEX40.fullmatch(commit) else sha[:40], filename)
 
-            path = hf_hub_download(
-                source[0], source[1], cache_dir=hub_cache(), endpoint=endpoint or os.environ.get("HF_ENDPOINT")
-            )
-            return Path(path)
-        if cfg.get("url"):
-            return _fetch_url(cfg["url"], url_cache())
-    except WeightsError:
-        raise
-    except Exception as exc:  # network, HTTP and file-system errors of two libraries
-        raise WeightsError(f"cannot fetch {model}/{tag}: {type(exc).__name__}: {str(exc)[:200]}") from None
-    raise WeightsError(f"open_clip's tag {model}/{tag} names neither a hub repository nor a URL")
+
+def _download(url: str, folder: Path) -> tuple[Path, str, dict[str, str]]:
+    """Stream ``url`` into a hidden ``.partial`` file in ``folder``: (file, SHA-256, response headers). A body
+    shorter than its Content-Length, or a dropped connection, is retried up to :data:`ATTEMPTS` times; nothing is
+    left behind on failure."""
+    import http.client
+    import urllib.error
+
+    folder.mkdir(parents=True, exist_ok=True)
+    last = ""
+    for _ in range(ATTEMPTS):
+        fd, name = tempfile.mkstemp(dir=folder, prefix=".download.", suffix=".partial")
+        tmp = Path(name)
+        try:
+            digest, size = hashlib.sha256(), 0
+            with os.fdopen(fd, "wb") as f, urllib.request.urlopen(url, timeout=60) as response:
+                announced = response.headers.get("Content-Length", "")
+                while chunk := response.read(1 << 20):
+                    size += len(chunk)
+                    if size > MAX_WEIGHTS_BYTES:
+                        raise WeightsError(f"{url}: more than {MAX_WEIGHTS_BYTES >> 30} GiB; refused")
+                    digest.update(chunk)
+                    f.write(chunk)
+                headers = dict(response.headers.items())
+            if announced.isdigit() and size != int(announced):
+                raise http.client.IncompleteRead(b"", int(announced) - size)
+            return tmp, digest.hexdigest(), headers
+        except urllib.error.HTTPError as exc:
+            tmp.unlink(missing_ok=True)
+            raise WeightsError(f"{url}: HTTP {exc.code} {exc.reason}") from None
+        except ValueError as exc:  # an address urllib cannot use
+            tmp.unlink(missing_ok=True)
+            raise WeightsError(f"{url}: {exc}") from None
+        except (OSError, http.client.HTTPException) as exc:
+            tmp.unlink(missing_ok=True)
+            last = f"{type(exc).__name__}: {str(exc)[:120]}"
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    raise WeightsError(f"{url}: gave up after {ATTEMPTS} attempts ({last})")
+
+
+def _store_hub(tmp: Path, sha: str, root: Path, commit: str, filename: str) -> Path:
+    """Move a checked download into the hub cache's layout (``blobs/SHA``, ``snapshots/COMMIT/FILE`` linking to it,
+    ``refs/main``), where open_clip and :func:`resolve_clip_weights` find it."""
+    blob = root / "blobs" / sha
+    os.replace(tmp, blob)
+    snapshot = root / "snapshots" / commit / filename
+    snapshot.parent.mkdir(parents=True, exist_ok=True)
+    link = snapshot.with_name(f".{filename}.link")
+    link.unlink(missing_ok=True)
+    link.symlink_to(os.path.relpath(blob, snapshot.parent))
+    os.replace(link, snapshot)
+    refs = root / "refs" / "main"
+    refs.parent.mkdir(parents=True, exist_ok=True)
+    refs_tmp = refs.with_name(".main.partial")
+    refs_tmp.write_text(commit)
+    os.replace(refs_tmp, refs)
+    return snapshot
+
+
+def check_weights(model: str, path: Path) -> str | None:
+    """Why ``path`` cannot be ``model``'s weights, or None: it must be a safetensors file (a format that cannot carry
+    code) holding every tensor of open_clip's ``model`` with its shape (the header is read; no tensor is loaded)."""
+    import open_clip
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except Exception as exc:  # safetensors raises its own error types for a bad header
+        return f"not a safetensors file ({type(exc).__name__}: {str(exc)[:80]})"
+    expected = {k: tuple(v.shape) for k, v in open_clip.create_model(model, pretrained=None).state_dict().items()}
+    missing = [k for k in expected if k not in shapes]
+    wrong = [k for k in expected if k in shapes and shapes[k] != expected[k]]
+    if missing or wrong:
+        first = (missing or wrong)[0]
+        return f"{len(missing)} of {model}'s tensors missing and {len(wrong)} of another shape (first: {first})"
+    return None
 
 
 def _sha256(path: Path) -> str:
@@ -91,26 +185,22 @@ def _sha256(path: Path) -> str:
 
 
 def _fetch_url(url: str, folder: Path) -> Path:
-    """Download ``url`` into ``folder`` atomically; a SHA-256 in the URL's path (OpenAI's) is checked,
-    also of a file already there (a mismatching one is downloaded again)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    target = folder / os.path.basename(url)
+    """Download ``url`` into ``folder`` atomically; the SHA-256 in the URL's path (OpenAI's style) is required and
+    checked, also of a file already there (a mismatching one is downloaded again)."""
     expected = url.split("/")[-2] if len(url.split("/")) > 1 else ""
-    checked = len(expected) == 64
-    if target.is_file() and (not checked or _sha256(target) == expected):
+    if not HEX64.fullmatch(expected):
+        raise WeightsError(f"{url}: no SHA-256 in the address to check the download against; refused")
+    name = os.path.basename(url)
+    if not name or name.startswith(".") or "\\" in name:
+        raise WeightsError(f"{url}: no usable file name in the address")
+    target = folder / name
+    if target.is_file() and _sha256(target) == expected:
         return target
-    with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{target.name}.", suffix=".partial", delete=False) as tmp:
-        try:
-            with urllib.request.urlopen(url, timeout=60) as response:
-                shutil.copyfileobj(response, tmp, 1 << 20)
-        except BaseException:
-            Path(tmp.name).unlink(missing_ok=True)
-            raise
-    actual = _sha256(Path(tmp.name))
-    if checked and actual != expected:
-        Path(tmp.name).unlink(missing_ok=True)
+    tmp, actual, _ = _download(url, folder)
+    if actual != expected:
+        tmp.unlink(missing_ok=True)
         raise WeightsError(f"{url}: SHA-256 {actual} does not match the {expected} in its address")
-    os.replace(tmp.name, target)
+    os.replace(tmp, target)
     return target
 
 

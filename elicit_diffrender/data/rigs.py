@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from .subject import Subject
 
 FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])
+MAX_SIDE = 16384  # pixels on a film's side
 SHIPPED_RIGS = ("input", "ring", "orbit")
 RING_SIZE = 512  # image size of the shipped ring rig
 
@@ -85,13 +86,25 @@ def _camera_from_sensor(
     return Camera(K, R, -R @ c2w[:3, 3], width, height, name)
 
 
+def _float(text: object, where: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise RigError(f"{where}: not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise RigError(f"{where}: not a finite number: {text!r}")
+    return value
+
+
 def _floats(text: str, n: int, where: str) -> np.ndarray:
     try:
         vals = np.array([float(v) for v in text.replace(",", " ").split()])
-    except ValueError as exc:
-        raise RigError(f"{where}: not a list of numbers: {text!r}") from exc
+    except ValueError:
+        raise RigError(f"{where}: not a list of numbers: {text!r}") from None
     if vals.size != n:
         raise RigError(f"{where}: expected {n} numbers, got {vals.size}")
+    if not np.isfinite(vals).all():
+        raise RigError(f"{where}: not finite: {text!r}")
     return vals
 
 
@@ -108,20 +121,24 @@ def _to_world(elem: ET.Element | None, where: str) -> np.ndarray:
             target = _floats(child.get("target", ""), 3, f"{where} <lookat target>")
             up = _floats(child.get("up", "0 1 0"), 3, f"{where} <lookat up>")
             d = target - origin
+            if np.linalg.norm(d) < 1e-9:
+                raise RigError(f"{where} <lookat>: origin and target are the same point")
             d /= np.linalg.norm(d)
             left = np.cross(up, d)
+            if np.linalg.norm(left) < 1e-9:
+                raise RigError(f"{where} <lookat>: up is parallel to the viewing direction")
             left /= np.linalg.norm(left)
             new_up = np.cross(d, left)
             step = np.eye(4)
             step[:3, 0], step[:3, 1], step[:3, 2], step[:3, 3] = left, new_up, d, origin
         elif child.tag == "translate":
             step = np.eye(4)
-            step[:3, 3] = [float(child.get(k, 0.0)) for k in "xyz"]
+            step[:3, 3] = [_float(child.get(k, 0.0), f"{where} <translate {k}>") for k in "xyz"]
         elif child.tag == "scale":
             if child.get("value") is not None:
-                step = np.diag([float(child.get("value"))] * 3 + [1.0])
+                step = np.diag([_float(child.get("value"), f"{where} <scale value>")] * 3 + [1.0])
             else:
-                step = np.diag([float(child.get(k, 1.0)) for k in "xyz"] + [1.0])
+                step = np.diag([_float(child.get(k, 1.0), f"{where} <scale {k}>") for k in "xyz"] + [1.0])
         else:
             raise RigError(f"{where}: unsupported transform element <{child.tag}>")
         m = step @ m
@@ -157,10 +174,14 @@ def read_rig(path: str | Path) -> list[Camera]:
             fov_axis = props["fov_axis"].get("value") if "fov_axis" in props else "x"
             ppx = float(props["principal_point_offset_x"].get("value")) if "principal_point_offset_x" in props else 0
             ppy = float(props["principal_point_offset_y"].get("value")) if "principal_point_offset_y" in props else 0
-        except (TypeError, ValueError) as exc:
-            raise RigError(f"{where}: bad numeric property ({exc})") from exc
+        except (TypeError, ValueError, ZeroDivisionError) as exc:
+            raise RigError(f"{where}: bad numeric property ({exc})") from None
         if fov is None:
             raise RigError(f"{where}: needs a 'fov' (or 'focal_length') property")
+        if not (math.isfinite(fov) and 0.0 < fov < 180.0):
+            raise RigError(f"{where}: fov must be between 0 and 180 degrees, got {fov!r}")
+        if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE) or not (math.isfinite(ppx) and math.isfinite(ppy)):
+            raise RigError(f"{where}: film {width}x{height} or principal point offset out of range")
         to_world = _to_world(sensor.find("transform[@name='to_world']"), where)
         cameras.append(_camera_from_sensor(fov, fov_axis, ppx, ppy, to_world, width, height, name))
     if not cameras:

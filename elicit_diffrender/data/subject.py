@@ -13,7 +13,6 @@ naming the file and the field.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,9 +20,9 @@ import numpy as np
 
 from ..body import BodyModel
 from ..core.cameras import Camera
-from ..core.checks import numeric, read_image, read_mask
+from ..core.checks import numeric, read_image, read_mask, safe_name
 from ..core.errors import ElicitError
-from ..core.io import write_image, write_json
+from ..core.io import read_json, write_image, write_json
 from .motions import Motion, MotionError, load_motion_npz
 
 FORMAT = "elicit-subject/1"
@@ -37,10 +36,7 @@ class SubjectError(ElicitError):
 def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise SubjectError(f"{path}: file not found")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SubjectError(f"{path}: not valid JSON ({exc})") from exc
+    data = read_json(path, SubjectError)
     if not isinstance(data, dict):
         raise SubjectError(f"{path}: the top level must be an object")
     return data
@@ -52,6 +48,7 @@ def parse_cameras(data: dict, path: Path) -> dict[str, Camera]:
     cams = {}
     for name, c in data.items():
         where = f"{path} camera {name!r}"
+        safe_name(name, where, SubjectError)  # it names the folders images/<camera>/ and masks/<camera>/
         if not isinstance(c, dict):
             raise SubjectError(f"{where}: must be an object")
         for key in ("K", "R", "T", "width", "height"):
@@ -141,8 +138,8 @@ def load_subject(path: str | Path) -> Subject:
     if body["model"] != "anny" and "betas" in body:
         numeric(body["betas"], f"{where} field 'body.betas'", (-1,), SubjectError)
     inp = meta.get("input")
-    if not isinstance(inp, dict) or "camera" not in inp or "frame" not in inp:
-        raise SubjectError(f'{where}: field \'input\' must be {{"camera": ..., "frame": ...}}')
+    if not isinstance(inp, dict) or not isinstance(inp.get("camera"), str) or "frame" not in inp:
+        raise SubjectError(f'{where}: field \'input\' must be {{"camera": "<name>", "frame": <frame id>}}')
     cameras = parse_cameras(_read_json(root / "cameras.json"), root / "cameras.json")
     if inp["camera"] not in cameras:
         raise SubjectError(

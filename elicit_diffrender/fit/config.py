@@ -8,6 +8,7 @@ ablations (``ABLATIONS``) at its place in the order preset, TOML file, overrides
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,8 +141,11 @@ class FitConfig:
             if not lo <= value <= hi:
                 raise ConfigError(f"{key} must be in [{lo}, {hi}], got {value!r}")
         for f in dataclasses.fields(self):
-            if f.name.startswith("w_") and getattr(self, f.name) < 0:
-                raise ConfigError(f"{f.name} must be >= 0, got {getattr(self, f.name)!r}")
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
+            if f.name.startswith("w_") and value < 0:
+                raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
         return self
 
 
@@ -177,6 +181,7 @@ RANGES: tuple[tuple[str, float, float], ...] = (
     ("preview_every", 1, INF),
     ("guard_every", 1, INF),
     ("log_every", 1, INF),
+    ("seed", 0, 2**32 - 1),
 )
 
 PRESETS: dict[str, dict[str, Any]] = {

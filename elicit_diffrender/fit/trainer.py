@@ -241,39 +241,38 @@ class Trainer:
         start = time.perf_counter()
         self.guard.remember()
         meter = LossMeter(cfg.log_every)
-        bar = tqdm(total=steps, initial=self.step, desc=f"stage {stage}", unit="step", dynamic_ncols=True)
-        while self.step < steps:
-            self.set_lr(self.step / max(1, steps))
-            self.renderer.refresh(self.step)
-            terms = self.step_terms(stage)
-            if terms is None:
-                continue
-            loss = self.objective.total(terms)
-            self.opt.zero_grad(set_to_none=True)
-            if not torch.isfinite(loss):
-                self.check()
-                continue
-            self.objective.backward(loss)
-            self.opt.step()
-            self.step += 1
-            bar.update(1)
-            done = self.step == steps
-            means = meter.add(terms)
-            if done:
-                means = meter.read() or means
-            if means is not None:
-                self.stats.losses[f"stage{stage}"] = means
-                bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
-            if self.step % cfg.guard_every == 0 or done:
-                self.check()
-            if self.step % cfg.preview_every == 0 or done:
-                self.preview(f"stage{stage}_{self.step:06d}")
-            if self.step % cfg.checkpoint_every == 0 or done:
-                key = f"stage{stage}"
-                self.stats.seconds[key] = self.stats.seconds.get(key, 0.0) + time.perf_counter() - start
-                start = time.perf_counter()
-                self.save()
-        bar.close()
+        with tqdm(total=steps, initial=self.step, desc=f"stage {stage}", unit="step", dynamic_ncols=True) as bar:
+            while self.step < steps:
+                self.set_lr(self.step / max(1, steps))
+                self.renderer.refresh(self.step)
+                terms = self.step_terms(stage)
+                if terms is None:
+                    continue
+                loss = self.objective.total(terms)
+                self.opt.zero_grad(set_to_none=True)
+                if not torch.isfinite(loss):
+                    self.check()
+                    continue
+                self.objective.backward(loss)
+                self.opt.step()
+                self.step += 1
+                bar.update(1)
+                done = self.step == steps
+                means = meter.add(terms)
+                if done:
+                    means = meter.read() or means
+                if means is not None:
+                    self.stats.losses[f"stage{stage}"] = means
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
+                if self.step % cfg.guard_every == 0 or done:
+                    self.check()
+                if self.step % cfg.preview_every == 0 or done:
+                    self.preview(f"stage{stage}_{self.step:06d}")
+                if self.step % cfg.checkpoint_every == 0 or done:
+                    key = f"stage{stage}"
+                    self.stats.seconds[key] = self.stats.seconds.get(key, 0.0) + time.perf_counter() - start
+                    start = time.perf_counter()
+                    self.save()
 
     def run(self, resume: bool = False) -> dict:
         """Train (continuing the run folder's checkpoint with ``resume``), save the avatar, write run.json.

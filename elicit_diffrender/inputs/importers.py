@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.cameras import Camera
-from ..core.checks import numeric, read_image, read_mask
+from ..core.checks import inside, numeric, read_image, read_mask
 from ..core.errors import ElicitError
 from ..core.io import folder_in_place
 from ..core.safe_load import load_npy, load_npz
@@ -233,6 +233,10 @@ def _import_zju(folder: Path, out: Path, frames: list[int], input_camera: int, s
     mask_dir = folder / "mask_cihp" if (folder / "mask_cihp").is_dir() else folder / "mask"
     for c, (K, R, T) in enumerate(cams):
         name = f"cam{c:02d}"
+        for f in frames:  # image paths are relative to the ZJU folder, and stay inside it (masks follow them)
+            where = f"{annots_path} field 'ims[{f}].ims'"
+            inside(folder, ims[f][c], where, SourceImportError)
+            inside(mask_dir, Path(ims[f][c]).with_suffix(".png"), where, SourceImportError)
         first_img, _ = read_image(folder / ims[frames[0]][c], "image", error=SourceImportError)
         cameras[name] = Camera(K, R, T, first_img.shape[1], first_img.shape[0], name)
         for f in frames:

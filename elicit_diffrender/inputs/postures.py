@@ -42,8 +42,10 @@ POSTURES: dict[str, dict[str, tuple[float, float, float]]] = {
     "arms_raised": _both({"l_upper_arm": (0.35, 1.0, 0.05), "l_forearm": (0.2, 1.0, 0.1)}),
     "arms_forward": _both({"l_upper_arm": (0.12, -0.1, 1.0), "l_forearm": (0.02, 0.0, 1.0)}),
     "arms_crossed": {
-        "l_upper_arm": (0.3, -0.8, 0.45), "l_forearm": (-1.0, 0.12, 0.22),
-        "r_upper_arm": (-0.3, -0.8, 0.45), "r_forearm": (1.0, 0.22, 0.3),
+        "l_upper_arm": (0.3, -0.8, 0.45),
+        "l_forearm": (-1.0, 0.12, 0.22),
+        "r_upper_arm": (-0.3, -0.8, 0.45),
+        "r_forearm": (1.0, 0.22, 0.3),
     },  # fmt: skip
     "hands_in_pockets": _both({"l_upper_arm": (0.2, -1.0, -0.05), "l_forearm": (-0.15, -1.0, 0.35)}),
     "holding": _both({"l_upper_arm": (0.12, -1.0, 0.12), "l_forearm": (-0.35, 0.05, 1.0)}),  # forearms forward

@@ -128,13 +128,10 @@ def person_mask(
     elif alpha is not None and alpha.min() < 1.0:
         mask, source = alpha > 0.5, "alpha channel"
     detection, missing = None, None
-    try:
-        if mask is None:
-            detection = detect_pose(photo)
-        else:
-            with tempfile.TemporaryDirectory() as tmp:
-                grey = write_image(Path(tmp) / "person.png", np.where(mask[..., None], rgb, 0.5))
-                detection = detect_pose(grey)
+    try:  # MediaPipe sees the pixels as read (EXIF orientation applied), on grey outside a given mask
+        with tempfile.TemporaryDirectory() as tmp:
+            shown = rgb if mask is None else np.where(mask[..., None], rgb, 0.5)
+            detection = detect_pose(write_image(Path(tmp) / "person.png", shown))
     except MediaPipeUnavailable as exc:
         missing = exc
     if mask is None:

@@ -115,9 +115,12 @@ def read_obj(path: str | Path) -> TexturedMesh:
         raise ScanError(f"{path}: no faces")
     pos, tex = np.asarray(positions, dtype=np.float64), np.asarray(texcoords, dtype=np.float64)
     refs = np.asarray(corners, dtype=np.int64)  # (F, 3, 2)
-    if (refs[..., 0] < 0).any() or (refs[..., 0] >= len(pos)).any() or (refs[..., 1] < 0).any() or (
-        refs[..., 1] >= len(tex)
-    ).any():
+    if (
+        (refs[..., 0] < 0).any()
+        or (refs[..., 0] >= len(pos)).any()
+        or (refs[..., 1] < 0).any()
+        or (refs[..., 1] >= len(tex)).any()
+    ):
         raise ScanError(f"{path}: a face refers to a vertex or texture coordinate that does not exist")
     names = sorted(set(materials))
     missing = [n for n in names if n not in mtl]
@@ -142,10 +145,13 @@ def texture_atlas(images: list[Path]) -> np.ndarray:
     atlas = np.zeros((n * ATLAS_TILE, n * ATLAS_TILE, 3), dtype=np.float32)
     for k, path in enumerate(images):
         rgb, _ = read_image(path, "texture", error=ScanError)
-        small = np.asarray(
-            Image.fromarray((rgb * 255).round().astype(np.uint8)).resize((inner, inner), Image.BILINEAR),
-            dtype=np.float32,
-        ) / 255.0
+        small = (
+            np.asarray(
+                Image.fromarray((rgb * 255).round().astype(np.uint8)).resize((inner, inner), Image.BILINEAR),
+                dtype=np.float32,
+            )
+            / 255.0
+        )
         r, c = divmod(k, n)
         framed = np.pad(small, ((ATLAS_BORDER, ATLAS_BORDER), (ATLAS_BORDER, ATLAS_BORDER), (0, 0)), mode="edge")
         atlas[r * ATLAS_TILE : (r + 1) * ATLAS_TILE, c * ATLAS_TILE : (c + 1) * ATLAS_TILE] = framed

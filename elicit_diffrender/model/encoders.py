@@ -166,7 +166,8 @@ def load_encoder(
     kind: str = "auto", model: str = "ViT-B-32", pretrained: str = "openai"
 ) -> tuple[nn.Module | None, EncoderInfo]:
     """The semantic encoder (None for the mirror completion) and a record of what was used: ``auto``
-    falls back to the mirror completion only without weights."""
+    falls back to the mirror completion without weights or with weights that do not load (a poisoned cache), and
+    says which in the record's reason."""
     if kind == "random-features":
         return RandomFeatureEncoder(), EncoderInfo(RANDOM_FEATURES_NAME, "random-features", "", "requested by config")
     if kind == "mirror":
@@ -188,5 +189,11 @@ def load_encoder(
     import open_clip
 
     cfg = open_clip.get_pretrained_cfg(model, pretrained) if not Path(pretrained).expanduser().is_file() else {}
-    encoder = build_clip(model, weights, quick_gelu=bool(cfg.get("quick_gelu", False)))
+    try:
+        encoder = build_clip(model, weights, quick_gelu=bool(cfg.get("quick_gelu", False)))
+    except EncoderError as exc:
+        if kind == "clip":
+            raise
+        reason = f"the weights file {weights} cannot be loaded ({str(exc)[-160:]}); fell back to the mirror completion"
+        return None, EncoderInfo(FALLBACK_NAME, "mirror", "", reason)
     return encoder, EncoderInfo(f"clip {model}/{Path(pretrained).name}", "clip", weights, "")

@@ -283,17 +283,18 @@ def evaluate_run(
 ) -> dict:
     """Evaluate a fitted avatar (``run`` folder) and write ``metrics.json`` + grids next to ``out``;
     with ``align``, a run fitted on another subject of the same person (see the module's docstring)."""
-    import json
-
+    from ..core.io import read_json
     from ..data.subject import SubjectError, load_subject
     from ..model.load import load_avatar
 
     run = Path(run)
+    report = read_json(run / "run.json", SubjectError) if (run / "run.json").is_file() else {}
+    if not isinstance(report, dict):
+        raise SubjectError(f"{run / 'run.json'}: the top level must be an object")
     avatar = load_avatar(run)
-    report = json.loads((run / "run.json").read_text()) if (run / "run.json").is_file() else {}
     extra: dict = {}
     if align:
-        if not report.get("subject"):
+        if not isinstance(report.get("subject"), str):
             raise SubjectError(f"{run}: --align needs the run's run.json, which names the subject it was fitted on")
         fitted = load_subject(report["subject"])
         pose = fitted.motion.frame(fitted.input_index)
@@ -334,7 +335,8 @@ def evaluate_run(
     out = Path(out)
     metrics = evaluate(subject, render, out.parent, scale, max_views, splits)
     metrics.update(extra)
-    metrics["encoder"] = (report.get("encoder") or {}).get("name")
-    metrics["fit_seconds"] = (report.get("seconds") or {}).get("total")
+    encoder, seconds = report.get("encoder"), report.get("seconds")
+    metrics["encoder"] = encoder.get("name") if isinstance(encoder, dict) else None
+    metrics["fit_seconds"] = seconds.get("total") if isinstance(seconds, dict) else None
     write_json(out, metrics)
     return metrics
