@@ -304,7 +304,7 @@ def main() -> int:
                 code, err, peak = done.returncode, done.stderr, int((done.stdout.strip().splitlines() or ["0"])[-1])
             except subprocess.TimeoutExpired:
                 code, err, peak = "timeout", "", 0
-            lines = [line for line in err.strip().splitlines() if "%|" not in line]
+            lines = [line for line in err.splitlines() if line.strip() and "%|" not in line]
             changed = _snapshot(root, out) != before
             clean = (code == 2 and len(lines) == 1) or (code == 0 and "Traceback" not in err)
             rows.append({

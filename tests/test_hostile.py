@@ -172,11 +172,15 @@ def test_a_forged_numpy_dtype_is_refused_not_a_segfault(tmp_path):
             "--out", str(tmp_path / "out"), out=tmp_path / "out", expect="refused")  # fmt: skip
 
 
-def test_a_missing_scipy_sparse_name_is_one_line(tmp_path):
+@pytest.mark.parametrize(
+    "ref", [b"scipy.sparse\nnot_there", b"scipy.sparse.not_there\ncsc_matrix", b"scipy.sparse.csc.x\ncsr_matrix"]
+)
+def test_a_missing_scipy_sparse_name_is_one_line(tmp_path, ref):
+    """A whitelisted matrix name in a scipy.sparse module that does not exist gave a ModuleNotFoundError."""
     pkl = tmp_path / "missing.pkl"
-    pkl.write_bytes(b"\x80\x02cscipy.sparse\nnot_there\nq\x00.")
+    pkl.write_bytes(b"\x80\x02c" + ref + b"\nq\x00.")
     hostile(tmp_path, "import", "elicit-wild", str(_wild(tmp_path / "wild")), "--smpl", str(pkl),
-            "--out", str(tmp_path / "out"), out=tmp_path / "out", expect="scipy.sparse.not_there")  # fmt: skip
+            "--out", str(tmp_path / "out"), out=tmp_path / "out", expect="missing.pkl")  # fmt: skip
 
 
 # ---- 3. tiny files that unfold into gigabytes ----
