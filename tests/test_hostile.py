@@ -407,5 +407,6 @@ def test_a_weights_file_that_is_a_pickle_is_one_line(tmp_path, tiny_subject):
     (tmp_path / "weights.pt").write_bytes(pickle.dumps({"a": print}))
     out = tmp_path / "run"
     args = ["fit", str(tiny_subject), "--out", str(out), "--set", "encoder=clip", "--set", "init_steps=1"]
+    args += ["--set", "voxel_size=0.03", "--set", "weight_grid=16"]  # the set-up small: ViT-B-32 alone is 0.6 GB
     line = hostile(tmp_path, *args, "--set", f"clip_pretrained={tmp_path / 'weights.pt'}", out=out, progress=True)
     assert "weights.pt" in line, line

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.errors import ElicitError
-from ..core.weights import WeightsError, resolve_clip_weights
+from ..core.weights import WeightsError, check_weights, resolve_clip_weights
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -147,9 +147,32 @@ class RandomFeatureEncoder(nn.Module):
         raise EncoderError(f"{RANDOM_FEATURES_NAME} has no text tower; text prompts need CLIP weights")
 
 
+def weights_problem(model: str, weights: str) -> str:
+    """Why ``weights`` cannot be read, found before the model is built ("" if no reason is known): a safetensors
+    file's header must list ``model``'s tensors; a plain pickle must pass torch's weights-only loader. Zip
+    checkpoints and TorchScript archives are left to open_clip."""
+    path = Path(weights)
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head == b"PK\x03\x04":
+        return ""
+    if path.suffix == ".safetensors":
+        return check_weights(model, path) or ""
+    try:
+        torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for a file it will not unpickle
+        return f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
+    return ""
+
+
 def build_clip(model: str, weights: str | None, quick_gelu: bool = False) -> ClipEncoder:
-    """An open_clip model from a local weights file (or randomly initialised when ``weights`` is None)."""
+    """An open_clip model from a local weights file (or randomly initialised when ``weights`` is None); a file
+    that cannot be read is refused before the model is built (:func:`weights_problem`)."""
     import open_clip
+
+    problem = weights_problem(model, weights) if weights is not None else ""
+    if problem:
+        raise EncoderError(f"cannot build open_clip {model!r} from {weights!r}: {problem}")
 
     try:
         net, _, preprocess = open_clip.create_model_and_transforms(
