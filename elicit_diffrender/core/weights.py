@@ -9,6 +9,7 @@ cache (``$HF_HUB_CACHE``, else ``$HF_HOME/hub``, else ``~/.cache/huggingface/hub
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -156,10 +157,17 @@ def _store_hub(tmp: Path, sha: str, root: Path, commit: str, filename: str) -> P
     return snapshot
 
 
+@functools.cache
+def _tensor_shapes(model: str) -> dict[str, tuple[int, ...]]:
+    """The name and shape of every tensor of open_clip's ``model`` (built once per process, randomly initialised)."""
+    import open_clip
+
+    return {k: tuple(v.shape) for k, v in open_clip.create_model(model, pretrained=None).state_dict().items()}
+
+
 def check_weights(model: str, path: Path) -> str | None:
     """Why ``path`` cannot be ``model``'s weights, or None: it must be a safetensors file (a format that cannot carry
     code) holding every tensor of open_clip's ``model`` with its shape (the header is read; no tensor is loaded)."""
-    import open_clip
     from safetensors import safe_open
 
     try:
@@ -167,7 +175,7 @@ def check_weights(model: str, path: Path) -> str | None:
             shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
     except Exception as exc:  # safetensors raises its own error types for a bad header
         return f"not a safetensors file ({type(exc).__name__}: {str(exc)[:80]})"
-    expected = {k: tuple(v.shape) for k, v in open_clip.create_model(model, pretrained=None).state_dict().items()}
+    expected = _tensor_shapes(model)
     missing = [k for k in expected if k not in shapes]
     wrong = [k for k in expected if k in shapes and shapes[k] != expected[k]]
     if missing or wrong:

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.errors import ElicitError
-from ..core.weights import WeightsError, check_weights, resolve_clip_weights
+from ..core.weights import WeightsError, resolve_clip_weights
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -148,16 +148,15 @@ class RandomFeatureEncoder(nn.Module):
 
 
 def weights_problem(model: str, weights: str) -> str:
-    """Why ``weights`` cannot be read, found before the model is built ("" if no reason is known): a safetensors
-    file's header must list ``model``'s tensors; a plain pickle must pass torch's weights-only loader. Zip
-    checkpoints and TorchScript archives are left to open_clip."""
+    """Why ``weights`` cannot be read, found before the model is built ("" if no reason is known): a plain pickle
+    must pass torch's weights-only loader. Safetensors files, zip checkpoints and TorchScript archives are left
+    to open_clip, which reads them into the model it builds (building one more model to check them first would
+    double every fit's encoder start-up)."""
     path = Path(weights)
     with open(path, "rb") as f:
         head = f.read(4)
-    if head == b"PK\x03\x04":
+    if head == b"PK\x03\x04" or path.suffix == ".safetensors":
         return ""
-    if path.suffix == ".safetensors":
-        return check_weights(model, path) or ""
     try:
         torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for a file it will not unpickle
