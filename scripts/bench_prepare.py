@@ -22,8 +22,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 from elicit_diffrender.apps.benchtools import (
     ROOT_DIR,
     SCAN_CREDITS,
@@ -56,18 +54,11 @@ LEAN_TARGET_DEG = 3.0  # mean torso and shin lean error over the inputs with a t
 def true_body_metrics(prepared: Path, truth: Path) -> dict:
     """Vertex error after the similarity alignment and lean errors of the prepared body against the true one."""
     from elicit_diffrender.data.subject import load_subject
-    from elicit_diffrender.outputs.evaluate import lean_angles, lean_errors, umeyama
+    from elicit_diffrender.outputs.evaluate import align_bodies
 
-    fitted, subject = load_subject(prepared), load_subject(truth)
-    pose, true_pose = fitted.motion.frame(fitted.input_index), subject.motion.frame(subject.input_index)
-    src, dst = fitted.body.pose(*pose).vertices, subject.body.pose(*true_pose).vertices
-    scale, rot, transl = umeyama(src, dst)
-    residual = np.linalg.norm(scale * src @ rot.T + transl - dst, axis=1)
-    lean = lean_errors(
-        lean_angles(fitted.body, pose, fitted.cameras[fitted.input_camera]),
-        lean_angles(subject.body, true_pose, subject.cameras[subject.input_camera]),
-    )
-    return {"vertex_error_cm": 100 * float(residual.mean()), **{f"lean_{k}_deg": v for k, v in lean.items()}}
+    aligned = align_bodies(load_subject(prepared), load_subject(truth))
+    lean = aligned.lean_error
+    return {"vertex_error_cm": 100 * float(aligned.residual.mean()), **{f"lean_{k}_deg": v for k, v in lean.items()}}
 
 
 def main() -> int:

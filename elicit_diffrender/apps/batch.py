@@ -20,6 +20,7 @@ need the dependencies installed and must see the input and output paths (a share
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 import signal
 import socket
@@ -73,8 +74,6 @@ def _is_photo(path: Path) -> bool:
 def job_name(stem: str) -> str:
     """A job folder's name from an input's name: letters, digits, '.', '_' and '-' kept, anything else '_', no
     leading dots (a photo named ``...png`` must not become the job ``..``, the folder above ``--out``)."""
-    import re
-
     return re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip(".") or "job"
 
 

@@ -138,13 +138,8 @@ def _scalar(dtype: object, data: object = b"") -> object:
 
 def _frombuffer(buffer: object, dtype: object, shape: object, order: object) -> _Array:
     out = _Array()
-    out.array = _from_bytes(buffer, _as_dtype(dtype) if isinstance(dtype, _Dtype) else _refuse_dtype(dtype),
-                            _shape(shape), order == "F")  # fmt: skip
+    out.array = _from_bytes(buffer, _as_dtype(dtype), _shape(shape), order == "F")
     return out
-
-
-def _refuse_dtype(dtype: object) -> np.dtype:
-    raise _Refused(f"a dtype given as a {type(dtype).__name__}")
 
 
 class _Sparse:

@@ -98,7 +98,7 @@ class MirrorCompletion:
     gains: torch.Tensor  # (N,) S(n_cell) / S(n_source): the photo's light on the cell's side against the source's
     rule_counts: dict[str, int]  # how many cells each rule gave a source
     unseen: int  # unseen cells near the body
-    colors: torch.Tensor | None = None  # (N, 3) fixed photo colours of the sources (the band rule); None: the grid's
+    colors: torch.Tensor | None = None  # (N, 3) fixed photo colours (the guarded rule; NaN: none); None: the grid's
     _target: torch.Tensor | None = None
     _key: int = -1
     _blur: torch.Tensor | None = None  # (N, cells) sparse: the blur's trilinear weights of every colour cell
@@ -134,16 +134,14 @@ class MirrorCompletion:
         _, idx = nearest(tree, pts[near])
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[near[hidden]], idx[hidden]
+        source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
+        color = None
         if rule == "guarded":
             colors = np.full((len(canonical), 3), np.nan) if colors is None else colors
             facing = np.ones(len(canonical)) if facing is None else facing
-            source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
             color = guard_details(
                 p, owner, source_vertex, canonical, normals, vertex_parts, seen, colors, facing, counts
             )
-        else:
-            source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
-            color = None
         has = ~np.isnan(source[:, 0])
         gains = np.ones(len(cells)) if light is None else light[owner] / light[source_vertex]
         device = field.color.device
@@ -310,12 +308,11 @@ def band_candidates(pool_along: np.ndarray, cell_along: np.ndarray, half: float,
     return np.where(valid, order[np.clip(index, 0, len(order) - 1)], -1)
 
 
-def robust_color(candidates: np.ndarray, colors: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def robust_color(candidates: np.ndarray, colors: np.ndarray, radius: float) -> np.ndarray:
     """Per row of (N, K) candidate vertices (-1: none), the mode of their photo colours: the mean of the colours
     within ``radius`` of the candidate with most such neighbours, recentred once. What most of the candidates
-    show wins, so a logo, a tie, a V-neck or a highlight among them neither becomes the colour nor tints it. Returns
-    the candidate nearest the mode (for the light at the source) and the (N, 3) mode (NaN where none is known)."""
-    pick = np.zeros(len(candidates), dtype=np.int64)
+    show wins, so a logo, a tie, a V-neck or a highlight among them neither becomes the colour nor tints it.
+    Returns the (N, 3) modes (NaN where no candidate is known)."""
     mode = np.full((len(candidates), 3), np.nan)
     for start in range(0, len(candidates), MODE_CHUNK):
         cand = candidates[start : start + MODE_CHUNK]
@@ -330,10 +327,8 @@ def robust_color(candidates: np.ndarray, colors: np.ndarray, radius: float) -> t
             near = (np.linalg.norm(c0 - centre[:, None], axis=-1) < radius) & known
             mean = (c0 * near[..., None]).sum(1) / np.maximum(near.sum(1, keepdims=True), 1)
             centre = np.where(near.any(1, keepdims=True), mean, centre)
-        nearest_k = np.where(known, np.linalg.norm(c0 - centre[:, None], axis=-1), np.inf).argmin(1)
-        pick[start : start + MODE_CHUNK] = cand[rows, nearest_k]
         mode[start : start + MODE_CHUNK] = np.where(known.any(1, keepdims=True), centre, np.nan)
-    return pick, mode
+    return mode
 
 
 def head_layout(canonical: np.ndarray, vertex_parts: np.ndarray) -> tuple[float, float, float]:
@@ -407,7 +402,7 @@ def guard_details(
         along = (canonical[pool] - centres[k]) @ axes[k]
         cand = band_candidates(along, (p[rows] - centres[k]) @ axes[k], BAND_HALF, BAND_MOST)
         cand = np.where(cand >= 0, pool[np.maximum(cand, 0)], -1)
-        mode[rows] = robust_color(cand, colors, GUARD_RADIUS)[1]
+        mode[rows] = robust_color(cand, colors, GUARD_RADIUS)
     source_color = colors[source_vertex]
     detail = np.linalg.norm(source_color - mode, axis=1) > DETAIL_DISTANCE  # False where either is unknown
     color[detail] = mode[detail]
@@ -418,6 +413,6 @@ def guard_details(
         pool = np.nonzero(hairy)[0]
         count = min(HAIR_CANDIDATES, len(pool))
         _, cand = nearest(cKDTree(canonical[pool]), p[rows], count)
-        color[rows] = robust_color(pool[cand.reshape(len(rows), count)], colors, GUARD_RADIUS)[1]
+        color[rows] = robust_color(pool[cand.reshape(len(rows), count)], colors, GUARD_RADIUS)
         counts["hair"] = int(rows.size)
     return color

@@ -78,12 +78,10 @@ def prepare_run_folder(run_dir: Path, resume: bool, force: bool) -> None:
             f"{run_dir} holds an earlier fit ({', '.join(held)}): pass --resume to continue it, "
             "--force to replace it, or use a new --out"
         )
-    for name in RESULTS:  # the temporary files of a save killed midway
-        for stale in run_dir.glob(f".{name}.*") if run_dir.is_dir() else []:
-            stale.unlink()
-    for stale in run_dir.glob(".tmp*") if run_dir.is_dir() else []:  # safetensors' own (Rust's tempfile names)
-        if SAFETENSORS_TEMP.fullmatch(stale.name) and stale.is_file() and not stale.is_symlink():
-            stale.unlink()
+    for path in run_dir.iterdir() if run_dir.is_dir() else []:  # the temporary files of a save killed midway
+        ours = any(path.name.startswith(f".{name}.") for name in RESULTS)
+        if (ours or SAFETENSORS_TEMP.fullmatch(path.name)) and path.is_file() and not path.is_symlink():
+            path.unlink()
 
 
 def fit(subject: Subject, cfg: FitConfig, run_dir: str | Path, resume: bool = False, force: bool = False) -> dict:

@@ -25,6 +25,7 @@ and ``spill`` ``|A & ~M| / |M|`` (the avatar where the person is not).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -178,6 +179,42 @@ def lean_errors(fitted: dict, truth: dict) -> dict[str, float]:
     }  # fmt: skip
 
 
+@dataclass
+class BodyAlignment:
+    """A body fitted on another subject of the same person against the true body, both at their input poses."""
+
+    similarity: tuple[float, np.ndarray, np.ndarray]  # (s, R, t): the fitted frame onto the true one
+    residual: np.ndarray  # (V,) metres between each aligned vertex and its true place
+    fitted_lean: dict[str, dict[str, float]]  # lean_angles of each body, in its own input camera's level frame
+    true_lean: dict[str, dict[str, float]]
+
+    @property
+    def lean_error(self) -> dict[str, float]:
+        return lean_errors(self.fitted_lean, self.true_lean)
+
+
+def align_bodies(fitted: Subject, truth: Subject) -> BodyAlignment:
+    """The similarity (:func:`umeyama`) that maps ``fitted``'s input-pose body onto ``truth``'s, the vertex error
+    left after it, and both bodies' lean; the same body model is needed for both."""
+    from ..data.subject import SubjectError
+
+    pose, true_pose = fitted.motion.frame(fitted.input_index), truth.motion.frame(truth.input_index)
+    src, dst = fitted.body.pose(*pose).vertices, truth.body.pose(*true_pose).vertices
+    if src.shape != dst.shape:
+        raise SubjectError(
+            f"{fitted.root}: its body has {len(src)} vertices and {truth.root}'s {len(dst)}; --align needs the same "
+            "body model for both"
+        )
+    sim = umeyama(src, dst)
+    residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
+    return BodyAlignment(
+        sim,
+        residual,
+        lean_angles(fitted.body, pose, fitted.cameras[fitted.input_camera]),
+        lean_angles(truth.body, true_pose, truth.cameras[truth.input_camera]),
+    )
+
+
 def evaluate(
     subject: Subject,
     render: Renderer,
@@ -298,27 +335,18 @@ def evaluate_run(
             raise SubjectError(f"{run}: --align needs the run's run.json, which names the subject it was fitted on")
         fitted = load_subject(report["subject"])
         pose = fitted.motion.frame(fitted.input_index)
-        src = fitted.body.pose(*pose).vertices
-        dst = subject.body.pose(*subject.motion.frame(subject.input_index)).vertices
-        if src.shape != dst.shape:
-            raise SubjectError(
-                f"{report['subject']}: its body has {len(src)} vertices and {subject.root}'s {len(dst)}; --align needs "
-                "the same body model for both"
-            )
-        sim = umeyama(src, dst)
-        residual = np.linalg.norm(sim[0] * src @ sim[1].T + sim[2] - dst, axis=1)
-        fitted_lean = lean_angles(fitted.body, pose, fitted.cameras[fitted.input_camera])
-        true_lean = lean_angles(
-            subject.body, subject.motion.frame(subject.input_index), subject.cameras[subject.input_camera]
-        )
+        aligned = align_bodies(fitted, subject)
+        sim, residual = aligned.similarity, aligned.residual
         extra["alignment"] = {
             "fitted_subject": str(report["subject"]),
             "scale": sim[0],
             "vertex_error_m": {"mean": float(residual.mean()), "max": float(residual.max())},
             "lean_deg": {
-                "fitted": {k: {a: b for a, b in v.items() if a != "_direction"} for k, v in fitted_lean.items()},
-                "true": {k: {a: b for a, b in v.items() if a != "_direction"} for k, v in true_lean.items()},
-                "error": lean_errors(fitted_lean, true_lean),
+                "fitted": {
+                    k: {a: b for a, b in v.items() if a != "_direction"} for k, v in aligned.fitted_lean.items()
+                },
+                "true": {k: {a: b for a, b in v.items() if a != "_direction"} for k, v in aligned.true_lean.items()},
+                "error": aligned.lean_error,
             },
         }
 
