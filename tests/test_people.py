@@ -75,3 +75,13 @@ def test_a_held_folder_shows_in_the_front_view_not_from_behind(tmp_path):
 
     front, back = folder_pixels(subject.image("cam00", 0)), folder_pixels(subject.image("cam02", 0))
     assert front > 30 and back < 0.2 * front
+
+
+def test_synth_takes_one_of_seed_person_and_mesh(capsys):
+    from elicit_diffrender.apps.cli import main
+
+    for extra in (["--seed", "1", "--person", "seated"], ["--person", "seated", "--mesh", "a.obj"]):
+        with pytest.raises(SystemExit) as done:
+            main(["synth", "--out", "o", *extra])
+        err = capsys.readouterr().err.strip()
+        assert done.value.code == 2 and len(err.splitlines()) == 1 and "not allowed with argument" in err, err

@@ -26,8 +26,6 @@ class Parser(argparse.ArgumentParser):
 
 
 def _synth(args: argparse.Namespace) -> None:
-    if sum(x is not None for x in (args.seed, args.person, args.mesh)) > 1:
-        raise ElicitError("synth: give one of --seed, --person and --mesh")
     if args.mesh is not None:
         from ..inputs.scan import synthesize_scan
 
@@ -223,9 +221,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synth", help="write a synthetic clothed subject (elicit-subject/1)")
-    s.add_argument("--seed", type=int_between(0, 2**32 - 1), default=None, help="draws a procedural person (default 0)")
-    s.add_argument("--person", choices=sorted(PEOPLE), help="a named person: clothes and posture of real people")
-    s.add_argument("--mesh", type=Path, help="a textured OBJ of a person (metres, +y up, facing +z) instead")
+    who = s.add_mutually_exclusive_group()
+    who.add_argument(
+        "--seed", type=int_between(0, 2**32 - 1), default=None, help="draws a procedural person (default 0)"
+    )
+    who.add_argument("--person", choices=sorted(PEOPLE), help="a named person: clothes and posture of real people")
+    who.add_argument("--mesh", type=Path, help="a textured OBJ of a person (metres, +y up, facing +z) instead")
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--motion", default="walk_in_place", help="built-in target motion")
     s.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=512, help="image size in pixels")
