@@ -114,7 +114,7 @@ def test_job_discovery(inputs, tmp_path):
     (tmp_path / "a" / "me.jpg").write_bytes(b"x")
     (tmp_path / "a" / "me_mask.png").write_bytes(b"x")
     (job,) = find_jobs([tmp_path / "a"])
-    assert job.mask == tmp_path / "a" / "me_mask.png"  # a mask beside its photo is the photo's, not a job
+    assert job.masks == (tmp_path / "a" / "me_mask.png",)  # a mask beside its photo is the photo's, not a job
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "me.png").write_bytes(b"x")
     with pytest.raises(BatchError, match="would share the job folder 'me'"):
@@ -124,6 +124,19 @@ def test_job_discovery(inputs, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(BatchError, match="no photos"):
         find_jobs([tmp_path / "empty"])
+    # --per-folder: a folder of photos is one person, one multi-photo job in name order, each with its mask.
+    (tmp_path / "person").mkdir()
+    for name in ("2_back.png", "1_front.jpg", "1_front_mask.png"):
+        (tmp_path / "person" / name).write_bytes(b"x")
+    (job,) = find_jobs([tmp_path / "person"], per_folder=True)
+    folder = tmp_path / "person"
+    assert job.name == "person" and job.is_photo
+    assert job.photos == (folder / "1_front.jpg", folder / "2_back.png")
+    assert job.masks == (folder / "1_front_mask.png", None)
+    stamp = job.stamp()
+    (folder / "2_back.png").write_bytes(b"xy")  # replacing any photo retries a failed job
+    assert job.stamp() != stamp
+    assert [j.name for j in find_jobs([tmp_path / "person"])] == ["1_front", "2_back"]  # without it: a job each
     assert parse_steps("export, fit") == ("fit", "export")
     with pytest.raises(BatchError, match="--steps"):
         parse_steps("fit,paint")

@@ -169,6 +169,12 @@ def test_the_refined_input_pose_travels_with_the_avatar(tmp_path, tiny_subject):
     torch.testing.assert_close(back.bone_transforms(*inp), back.refined(raw))
     assert (back.bone_transforms(*inp) - raw).abs().max() > 1e-4
     torch.testing.assert_close(back.bone_transforms(*other), back.bone_transforms(*other, refine=False))
+    # A file from before multi-photo fits held one correction, (B, 3), and one flat pose: it loads as row 0.
+    legacy = back.state()
+    legacy["tensors"]["pose_delta"] = legacy["tensors"]["pose_delta"][0]
+    legacy["tensors"]["refined_pose"] = legacy["tensors"]["refined_pose"][0]
+    old = Avatar.from_state(legacy).to(back.device)
+    torch.testing.assert_close(old.bone_transforms(*inp), back.bone_transforms(*inp))
     # An avatar fitted without it (or saved before the key existed) renders every pose as given.
     state = back.state()
     del state["tensors"]["refined_pose"]

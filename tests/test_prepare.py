@@ -34,6 +34,11 @@ def test_failure_modes_name_the_problem(tmp_path):
     landmarks[27] = (40.0, 130.0, 0.9)  # the left ankle below the image
     with pytest.raises(PrepareError, match="left ankle"):
         check_not_cut_off(blob(), landmarks, photo)
+    landmarks[27] = (40.0, 60.0, 0.1)  # seen from the side, one ankle hides behind the other: a full body still
+    check_not_cut_off(blob(), landmarks, photo)
+    landmarks[28, 2] = 0.1
+    with pytest.raises(PrepareError, match="ankles are hidden"):
+        check_not_cut_off(blob(), landmarks, photo)
 
 
 def test_exif_focal(tmp_path):

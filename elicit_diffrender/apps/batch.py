@@ -34,9 +34,9 @@ from pathlib import Path
 from ..core.checks import inside
 from ..core.errors import ElicitError, error_line
 from ..core.io import read_json, write_json, write_text
+from ..inputs.prepare import MASK_SUFFIX, mask_beside
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
-MASK_SUFFIX = "_mask"  # photo.jpg's person mask, if given, is photo_mask.png beside it
 STEPS = ("prepare", "fit", "render", "export")
 FIT_MEMORY = 3 * 1024**3  # bytes a cpu-fast fit may need (peak measured 1.9 GB): Ray packs tasks by it
 JOB_FILE = "job.json"
@@ -49,18 +49,19 @@ class BatchError(ElicitError):
 @dataclass(frozen=True)
 class Job:
     name: str
-    source: Path  # a photo or an elicit-subject/1 folder
-    mask: Path | None = None  # the photo's person mask, if one lies beside it
+    source: Path  # a photo, an elicit-subject/1 folder, or (--per-folder) a folder of photos of one person
+    photos: tuple[Path, ...] = ()  # the photos ``prepare`` turns into the job's subject (none: a subject)
+    masks: tuple[Path | None, ...] = ()  # each photo's person mask, if one lies beside it
 
     @property
     def is_photo(self) -> bool:
-        return self.source.is_file()
+        return bool(self.photos)
 
     def stamp(self) -> str:
-        """Size and modification time of the input (a subject's ``subject.json``): it changes when the
+        """Sizes and modification times of the inputs (a subject's ``subject.json``): it changes when an
         input is replaced."""
-        info = (self.source if self.is_photo else self.source / "subject.json").stat()
-        return f"{info.st_size}-{info.st_mtime_ns}"
+        files = self.photos or (self.source / "subject.json",)
+        return "+".join(f"{info.st_size}-{info.st_mtime_ns}" for info in (f.stat() for f in files))
 
 
 def _is_subject(path: Path) -> bool:
@@ -78,18 +79,20 @@ def job_name(stem: str) -> str:
 
 
 def _photo_job(path: Path) -> Job:
-    mask = path.with_name(path.stem + MASK_SUFFIX + ".png")
-    return Job(job_name(path.stem), path, mask if mask.is_file() else None)
+    return Job(job_name(path.stem), path, (path,), (mask_beside(path),))
 
 
-def find_jobs(inputs: list[Path]) -> list[Job]:
-    """One job per photo or subject folder; a folder of them gives one job for each (not recursive)."""
+def find_jobs(inputs: list[Path], per_folder: bool = False) -> list[Job]:
+    """One job per photo or subject folder; a folder of them gives one job for each (not recursive). With
+    ``per_folder``, a folder of photos is one person: one job prepares them all into one multi-photo subject."""
     jobs: list[Job] = []
     for path in inputs:
         if _is_photo(path):
             jobs.append(_photo_job(path))
         elif path.is_dir() and _is_subject(path):
             jobs.append(Job(job_name(path.name), path))
+        elif per_folder and path.is_dir() and (photos := sorted(p for p in path.iterdir() if _is_photo(p))):
+            jobs.append(Job(job_name(path.name), path, tuple(photos), tuple(mask_beside(p) for p in photos)))
         elif path.is_dir():
             found = [
                 _photo_job(p) if p.is_file() else Job(job_name(p.name), p)
@@ -169,7 +172,7 @@ def run_job(job: Job, job_dir: Path, steps: tuple[str, ...], config: dict, rende
         if job.is_photo and not (subject_dir / "subject.json").is_file():
             if "prepare" not in steps:
                 raise BatchError(f"{job.source}: a photo needs the prepare step (no {subject_dir} yet)")
-            prepare(job.source, subject_dir, job.mask, force=True)
+            prepare(list(job.photos), subject_dir, list(job.masks), force=True)
         if job.is_photo:
             record["prepare_iou"] = _read_json(subject_dir / "fit_report.json").get("silhouette_iou")
             done.append("prepare")
@@ -293,15 +296,17 @@ def run_batch(
     address: str | None = None,
     cpus_per_fit: int = 1,
     render_size: int = 256,
+    per_folder: bool = False,
 ) -> dict:
-    """Run every job that is not finished on Ray, with a progress bar; returns the summary."""
+    """Run every job that is not finished on Ray, with a progress bar; returns the summary (``per_folder``: a
+    folder of photos is one person's, see :func:`find_jobs`)."""
     from tqdm import tqdm
 
     from ..core.device import cpus_given
 
     t0 = time.perf_counter()
     try:
-        jobs, out = find_jobs([p.resolve() for p in inputs]), out.resolve()  # the same paths on every node
+        jobs, out = find_jobs([p.resolve() for p in inputs], per_folder), out.resolve()  # the same paths on every node
     except (RuntimeError, OSError) as exc:  # a symbolic link loop, an unreadable folder
         raise BatchError(f"cannot read the inputs or --out ({exc})") from None
     for job in jobs:  # every job folder lies strictly inside --out

@@ -26,6 +26,8 @@ class Parser(argparse.ArgumentParser):
 
 
 def _synth(args: argparse.Namespace) -> None:
+    if args.mesh is not None and args.photos:
+        raise ElicitError("--photos renders procedural people only; it cannot be used with --mesh")
     if args.mesh is not None:
         from ..inputs.scan import synthesize_scan
 
@@ -35,7 +37,14 @@ def _synth(args: argparse.Namespace) -> None:
 
         seed = 0 if args.seed is None else args.seed
         out = synthesize(
-            seed, args.out, args.motion, size=args.size, spp=args.spp, force=args.force, person=args.person
+            seed,
+            args.out,
+            args.motion,
+            size=args.size,
+            spp=args.spp,
+            force=args.force,
+            person=args.person,
+            photos=args.photos,
         )
     print(f"wrote synthetic subject {out} (contact sheet: {out / 'contact_sheet.png'})")
 
@@ -102,7 +111,9 @@ def _batch(args: argparse.Namespace) -> None:
 
     steps = parse_steps(args.steps)
     cfg = make_config(args.preset, args.config, args.set)
-    summary = run_batch(args.inputs, args.out, steps, config_dict(cfg), args.address, args.cpus_per_fit, args.size)
+    summary = run_batch(
+        args.inputs, args.out, steps, config_dict(cfg), args.address, args.cpus_per_fit, args.size, args.per_folder
+    )
     failed = [r for r in summary["jobs"] if r["status"] == "failed"]
     for r in failed:
         print(f"job {r['name']} failed: {r['error']}")
@@ -144,24 +155,24 @@ def _eval(args: argparse.Namespace) -> None:
 
 
 def _prepare(args: argparse.Namespace) -> None:
-    from ..inputs.prepare import prepare
+    from ..inputs.prepare import mask_beside, prepare
 
+    masks = args.mask or [mask_beside(p) for p in args.photo]
     r = prepare(
         args.photo,
         args.out,
-        args.mask,
+        masks if any(m is not None for m in masks) else None,
         args.params,
         args.focal,
         args.motion,
         force=args.force,
         max_megapixels=args.max_megapixels,
     )
-    kp = r.get("keypoint_error_px")
-    kp_text = f", keypoint error {kp['median']:.1f} px median" if kp else ""
-    print(
-        f"wrote subject {args.out}: silhouette IoU {r['silhouette_iou']:.3f}{kp_text}, {r['seconds']:.0f} s "
-        f"(overlay: {args.out / 'overlay.png'})"
-    )
+    for row in r.get("photos", [r]):
+        kp = row.get("keypoint_error_px")
+        kp_text = f", keypoint error {kp['median']:.1f} px median" if kp else ""
+        print(f"{row['photo']}: silhouette IoU {row['silhouette_iou']:.3f}{kp_text}")
+    print(f"wrote subject {args.out} in {r['seconds']:.0f} s (overlay: {args.out / 'overlay.png'})")
 
 
 def _import(args: argparse.Namespace) -> None:
@@ -232,6 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=512, help="image size in pixels")
     s.add_argument("--spp", type=int_between(1, 4096), default=32, help="path-tracing samples per pixel")
     s.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    s.add_argument(
+        "--photos",
+        action="store_true",
+        help="also render a back and a side photo in the motion's middle frame (multi-photo tests)",
+    )
     s.set_defaults(func=_synth)
 
     f = sub.add_parser("fit", help="fit an avatar to a subject (two-stage ELICIT optimisation)")
@@ -298,6 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--cpus-per-fit", type=int_between(1, 1024), default=1, help="CPUs each job's threads use")
     b.add_argument("--size", type=int_between(16, MAX_IMAGE_SIZE), default=256, help="video and sheet size, pixels")
+    b.add_argument(
+        "--per-folder",
+        action="store_true",
+        help="a folder of photos shows one person: one multi-photo job per folder (default: a job per photo)",
+    )
     b.set_defaults(func=_batch)
 
     e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
@@ -313,12 +334,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.set_defaults(func=_eval)
 
-    q = sub.add_parser("prepare", help="turn one photo into a subject: mask, camera and an Anny body fit")
-    q.add_argument("photo", type=Path)
+    q = sub.add_parser("prepare", help="turn photos of one person into a subject: masks, cameras and an Anny body fit")
+    q.add_argument("photo", type=Path, nargs="+", help="one or more photos of one person in the same clothes")
     q.add_argument("--out", type=Path, required=True)
-    q.add_argument("--mask", type=Path, default=None, help="person mask, 1-, 8- or 16-bit (above half is the person)")
+    q.add_argument(
+        "--mask",
+        type=Path,
+        action="append",
+        default=None,
+        help="person mask, 1-, 8- or 16-bit (above half is the person); once per photo, in order "
+        "(default: PHOTO_mask.png beside each photo, if there is one)",
+    )
     q.add_argument("--params", type=Path, default=None, help="ELICIT/CLIFF gt_params.npz (focal_l, pred_joints)")
-    q.add_argument("--focal", type=float_between(1.0, 1e6), default=None, help="focal length in pixels")
+    q.add_argument(
+        "--focal",
+        type=float_between(1.0, 1e6),
+        action="append",
+        default=None,
+        help="focal length in pixels; once for every photo, or once per photo",
+    )
     q.add_argument("--motion", default="walk_in_place", help="built-in target motion")
     q.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
     q.add_argument(

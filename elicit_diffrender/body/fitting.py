@@ -428,17 +428,25 @@ def fit_anny_to_image(
     render_silhouette: SilhouetteFactory | None = None,
     render_steps: int = RENDER_STEPS,
     world_landmarks: np.ndarray | None = None,
+    phenotype: dict[str, float] | None = None,
 ) -> dict:
     """Fit Anny to one photo in camera space (``x_cam = x_world``): 2D keypoints (33, 3: x, y,
     visibility, pixels) and/or camera-space SMPL joints, then the silhouette: first a fast
     point-to-mask distance, then ``render_steps`` steps on the differentiable silhouette that
     ``render_silhouette(faces, n_vertices)`` renders (skipped without one). ``world_landmarks`` (33, 3),
     MediaPipe's metric landmarks in camera axes, fix the directions of the body's ``WORLD_LINES``: the torso's
-    from the coarse stage on, the visible arms' and thighs' in the fine stages (``WORLD_WEIGHT``)."""
+    from the coarse stage on, the visible arms' and thighs' in the fine stages (``WORLD_WEIGHT``). A given
+    ``phenotype`` (another photo's fit of the same person) holds the body's shape fixed: only pose and placement
+    are fitted."""
     if keypoints is None and joints3d is None:
         raise ValueError("the image fit needs 2D keypoints or 3D joints")
     targets = ImageTargets(K, mask, keypoints)
     fit = AnnyFit()
+    shape_logits = torch.zeros_like(fit.pheno)
+    if phenotype is not None:
+        values = torch.tensor([phenotype[k] for k in fit.labels], dtype=torch.float64).clamp(1e-4, 1 - 1e-4)
+        shape_logits = torch.logit(values)
+        fit.pheno.requires_grad_(False)
     model_keypoints = KeypointModel(fit)
     kp_ids = model_keypoints.ids
     # Posture priors only where the photo shows the posture they assume (3D joints alone keep them all).
@@ -505,7 +513,7 @@ def fit_anny_to_image(
     for yaw in (0.0, np.pi):
         with torch.no_grad():
             fit.rotvecs.zero_()
-            fit.pheno.zero_()
+            fit.pheno.copy_(shape_logits)
             rot = base @ axis_angle_to_matrix(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64)).numpy()
             fit.g_rot.copy_(matrix_to_axis_angle(torch.as_tensor(rot)))
             fit.g_t.zero_()

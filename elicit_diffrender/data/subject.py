@@ -1,13 +1,16 @@
 """The subject folder format ``elicit-subject/1``: read, validate and write.
 
-    subject.json   {"format": "elicit-subject/1", "body": {...}, "input": {"camera": "cam00", "frame": 0}}
+    subject.json   {"format": "elicit-subject/1", "body": {...}, "input": {"camera": "cam00", "frame": 0},
+                    optional "inputs": [{"camera": ..., "frame": ...}, ...]}
     cameras.json   {"cam00": {"K": 3x3, "R": 3x3, "T": [x, y, z], "width": W, "height": H}, ...}
     motion.npz     pose (F, J, 3), global_orient (F, 3), transl (F, 3), optional frame_ids (F,)
     images/<cam>/<frame:06d>.png   RGB
     masks/<cam>/<frame:06d>.png    1-, 8- or 16-bit, above half of full scale is the person
 
-``frame`` is a motion frame id (``frame_ids``, default 0..F-1). Fitting needs only the input view;
-any other image is ground truth for evaluation. Every problem is reported as a ``SubjectError``
+``frame`` is a motion frame id (``frame_ids``, default 0..F-1). Fitting needs only the input view, or
+the input views: ``inputs`` lists every photo of a multi-photo subject (each its own camera and frame),
+its first entry equal to ``input``, which stays the view that novel views are measured from. Any other
+image is ground truth for evaluation. Every problem is reported as a ``SubjectError``
 naming the file and the field.
 """
 
@@ -77,7 +80,12 @@ class Subject:
     input_camera: str
     input_frame: int
     meta: dict = field(default_factory=dict)
+    inputs: list[tuple[str, int]] = field(default_factory=list)  # every input view, the first is the input
     _body: BodyModel | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if not self.inputs:
+            self.inputs = [(self.input_camera, self.input_frame)]
 
     @property
     def body(self) -> BodyModel:
@@ -90,7 +98,11 @@ class Subject:
     @property
     def input_index(self) -> int:
         """Index of the input frame in the motion."""
-        return int(np.nonzero(self.motion.frame_ids == self.input_frame)[0][0])
+        return self.frame_index(self.input_frame)
+
+    def frame_index(self, frame: int) -> int:
+        """Index of a frame id in the motion."""
+        return int(np.nonzero(self.motion.frame_ids == frame)[0][0])
 
     def image_path(self, camera: str, frame: int) -> Path:
         return self.root / "images" / camera / f"{frame:06d}.png"
@@ -152,11 +164,34 @@ def load_subject(path: str | Path) -> Subject:
         raise SubjectError(str(exc)) from None
     if not isinstance(inp["frame"], int) or inp["frame"] not in motion.frame_ids.tolist():
         raise SubjectError(f"{where}: field 'input.frame' = {inp['frame']!r} is not a frame id of motion.npz")
-    subject = Subject(root, body, cameras, motion, inp["camera"], inp["frame"], meta)
-    subject.image(subject.input_camera, subject.input_frame)  # the input view must exist and match
-    if not subject.mask(subject.input_camera, subject.input_frame).any():
-        raise SubjectError(f"{subject.mask_path(subject.input_camera, subject.input_frame)}: the input mask is empty")
+    inputs = parse_inputs(meta.get("inputs", [inp]), cameras, motion, where)
+    if inputs[0] != (inp["camera"], inp["frame"]):
+        raise SubjectError(f"{where}: field 'inputs' must start with the view that 'input' names")
+    subject = Subject(root, body, cameras, motion, inp["camera"], inp["frame"], meta, inputs)
+    for cam, frame in inputs:
+        subject.image(cam, frame)  # every input view must exist and match its camera
+        if not subject.mask(cam, frame).any():
+            raise SubjectError(f"{subject.mask_path(cam, frame)}: the input mask is empty")
     return subject
+
+
+def parse_inputs(entries, cameras: dict[str, Camera], motion: Motion, where: Path) -> list[tuple[str, int]]:
+    """``inputs``: a non-empty list of distinct {"camera": name, "frame": frame id} of known cameras and frames."""
+    if not isinstance(entries, list) or not entries:
+        raise SubjectError(f'{where}: field \'inputs\' must be a non-empty list of {{"camera": ..., "frame": ...}}')
+    out = []
+    for k, entry in enumerate(entries):
+        cam = entry.get("camera") if isinstance(entry, dict) else None
+        frame = entry.get("frame") if isinstance(entry, dict) else None
+        if cam not in cameras or not isinstance(frame, int) or frame not in motion.frame_ids.tolist():
+            raise SubjectError(
+                f"{where}: field 'inputs[{k}]' = {entry!r} must name a camera of cameras.json and a frame id of "
+                "motion.npz"
+            )
+        out.append((cam, frame))
+    if len(set(out)) != len(out):
+        raise SubjectError(f"{where}: field 'inputs' lists a view twice")
+    return out
 
 
 def write_subject(
@@ -168,8 +203,10 @@ def write_subject(
     input_frame: int,
     views: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]],
     extra: dict | None = None,
+    inputs: list[tuple[str, int]] | None = None,
 ) -> Path:
-    """Write a subject folder; ``views`` maps (camera, frame) to (RGB float [0,1], mask bool)."""
+    """Write a subject folder; ``views`` maps (camera, frame) to (RGB float [0,1], mask bool); ``inputs``, every
+    input view of a multi-photo subject (the first is ``(input_camera, input_frame)``)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     motion.save(root / "motion.npz")
@@ -178,6 +215,8 @@ def write_subject(
         write_image(root / "images" / cam / f"{frame:06d}.png", rgb)
         write_image(root / "masks" / cam / f"{frame:06d}.png", (np.asarray(mask) > 0.5).astype(np.uint8) * 255)
     meta = {"format": FORMAT, "body": body_spec, "input": {"camera": input_camera, "frame": int(input_frame)}}
+    if inputs is not None and len(inputs) > 1:
+        meta["inputs"] = [{"camera": cam, "frame": int(frame)} for cam, frame in inputs]
     meta.update(extra or {})
     write_json(root / "subject.json", meta)  # last: a folder with subject.json is complete
     return root

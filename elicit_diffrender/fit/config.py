@@ -36,6 +36,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "encoder": ("auto", "clip", "mirror", "random-features"),
     "baseline": ("none", "explicit_texture"),
     "completion": ("mirror", "guarded"),
+    "multi_photo": ("observed", "reference"),
 }
 
 
@@ -61,7 +62,10 @@ class FitConfig:
     # torso beside a hanging arm out of the arm's room); the render scales the room's foreground back to 1
     room_weight: float = 1.0
     learn_motion_weights: bool = False
-    refine_input_pose: bool = False  # learn a rotation correction per bone for the input pose
+    refine_input_pose: bool = False  # learn a rotation correction per bone for every input pose
+    # A multi-photo subject's other photos: "observed" views reconstructed in their own poses, or only semantic
+    # "reference" crops (the paper's supplementary variant: no pose alignment, nothing reconstructed)
+    multi_photo: str = "observed"
     garment_hull: bool = True  # a garment that bridges the legs in the photo gets depth (fit/room.py)
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
     # While the motion weights and a training pose are fixed, that pose's inverse warp is baked into a look-up

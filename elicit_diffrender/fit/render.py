@@ -38,8 +38,9 @@ class PoseRenderer:
         self.samples_per_ray, self.t_thresh = samples_per_ray, t_thresh
         self.input_pose = subject.input_index
         self._bones = {p: avatar.bone_transforms(*subject.motion.frame(p), refine=False) for p in poses}
-        # The poses the avatar itself corrects when it renders them (``Avatar.set_refined_pose``)
-        self._refined = {p for p in poses if avatar.is_refined_pose(*subject.motion.frame(p))}
+        # The poses the avatar itself corrects when it renders them (``Avatar.set_refined_poses``): pose -> row
+        refined = {p: avatar.refined_index(*subject.motion.frame(p)) for p in poses}
+        self._refined = {p: k for p, k in refined.items() if k is not None}
         self._spaces: dict[int, tuple] = {}
         self._baked: dict[int, BakedWarp] = {}
         self._space_key = -1
@@ -47,7 +48,7 @@ class PoseRenderer:
     def bones(self, pose: int) -> torch.Tensor:
         """(B, 4, 4) bone transforms of a training pose, with the learned correction on the input pose."""
         bones = self._bones[pose]
-        return self.avatar.refined(bones) if pose in self._refined else bones
+        return self.avatar.refined(bones, self._refined[pose]) if pose in self._refined else bones
 
     def _moving(self, pose: int) -> bool:
         return self.avatar.motion_weights.logits.requires_grad or pose in self._refined

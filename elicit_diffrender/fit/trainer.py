@@ -98,9 +98,16 @@ class Trainer:
         ).to(self.device)
         self.avatar.motion_weights.logits.requires_grad_(cfg.learn_motion_weights)
         self.avatar.pose_delta.requires_grad_(cfg.refine_input_pose)
-        if cfg.refine_input_pose:
-            self.avatar.set_refined_pose(*subject.motion.frame(subject.input_index))
         self.views = FitViews.build(subject, cfg, self.device)
+        if cfg.refine_input_pose:
+            self.avatar.set_refined_poses([subject.motion.frame(v.pose) for v in self.views.observed])
+        if len(subject.inputs) > 1:
+            log.info(
+                "input photos: %d observed, %d semantic references only (multi_photo=%s)",
+                len(self.views.observed),
+                len(self.views.references),
+                cfg.multi_photo,
+            )
         poses = list(self.views.prior.rows)
         self.renderer = PoseRenderer(
             self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams, cfg.warp_cell
@@ -304,6 +311,8 @@ class Trainer:
             "encoder": info.to_dict() if info else None,
             "perceptual": {"name": perceptual.name, "reason": perceptual.reason},
             "training_poses": self.views.poses,
+            "input_views": [[cam, frame] for cam, frame in self.subject.inputs],
+            "observed_views": len(self.views.observed),
             "ring_cameras": len(self.views.ring),
             "seconds": seconds,
             "recoveries": self.stats.recoveries,

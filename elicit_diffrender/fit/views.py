@@ -59,12 +59,13 @@ def random_patch(rng: np.random.Generator, mask: np.ndarray, size: int) -> tuple
     return int(np.clip(cx - size // 2, 0, max(0, w - size))), int(np.clip(cy - size // 2, 0, max(0, h - size)))
 
 
-def training_poses(subject: Subject, step: int, input_only: bool) -> list[int]:
-    """The input pose, then every ``step``-th pose of the motion (only the input pose with ``input_only``)."""
-    idx = subject.input_index
+def training_poses(subject: Subject, step: int, input_only: bool, observed: list[int] | None = None) -> list[int]:
+    """The input poses (``observed``, default the first input's), then every ``step``-th pose of the motion (only
+    the input poses with ``input_only``)."""
+    first = [subject.input_index] if observed is None else observed
     if input_only:
-        return [idx]
-    return [idx] + [i for i in range(0, len(subject.motion), max(1, step)) if i != idx]
+        return list(first)
+    return list(first) + [i for i in range(0, len(subject.motion), max(1, step)) if i not in first]
 
 
 @dataclass
@@ -95,8 +96,9 @@ class PriorViews:
 
 @dataclass
 class InputView:
-    """The input photo at the working scale, on black, with its mask and the body's part labels."""
+    """An input photo at the working scale, on black, with its mask and the body's part labels."""
 
+    pose: int  # its pose: an index into the subject's motion
     camera: Camera
     image: torch.Tensor  # (3, H, W) on the fit's device
     mask: torch.Tensor  # (H, W) 0/1 float on the fit's device
@@ -107,21 +109,27 @@ class InputView:
     shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
     colors: np.ndarray  # (V, 3) the photo's colour at every seen vertex well inside the mask, NaN elsewhere
     facing: np.ndarray  # (V,) cosine between each vertex's normal and the way to the camera
+    yaw: float  # the body's facing seen from the camera (:func:`body_yaw`), degrees
 
     @classmethod
-    def load(cls, subject: Subject, scale: float, renderer: MeshRenderer, device: torch.device) -> InputView:
-        camera = subject.cameras[subject.input_camera].scaled(scale)
-        img = torch.as_tensor(subject.image(subject.input_camera, subject.input_frame)).permute(2, 0, 1)
-        msk = torch.as_tensor(subject.mask(subject.input_camera, subject.input_frame), dtype=torch.float32)[None]
+    def load(
+        cls, subject: Subject, view: tuple[str, int], scale: float, renderer: MeshRenderer, device: torch.device
+    ) -> InputView:
+        """The input ``view`` (camera name, frame id) of ``subject``."""
+        name, frame = view
+        pose = subject.frame_index(frame)
+        camera = subject.cameras[name].scaled(scale)
+        img = torch.as_tensor(subject.image(name, frame)).permute(2, 0, 1)
+        msk = torch.as_tensor(subject.mask(name, frame), dtype=torch.float32)[None]
         size = (camera.height, camera.width)
         mask = (F.interpolate(msk[None], size=size, mode="area")[0, 0] > 0.5).float()
         image = F.interpolate(img[None], size=size, mode="area")[0] * mask
-        posed = subject.body.pose(*subject.motion.frame(subject.input_index))
+        posed = subject.body.pose(*subject.motion.frame(pose))
         out = renderer.render(posed.vertices, [camera], ("labels", "depth"))
         person = mask.numpy() > 0.5
         normals = vertex_normals(posed.vertices, subject.body.faces)
         seen = visible_vertices(posed.vertices, normals, camera, out["depth"][0], person)
-        full = subject.cameras[subject.input_camera]  # the light is fitted to the photo at full resolution
+        full = subject.cameras[name]  # the light is fitted to the photo at full resolution
         photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
         shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
         colors = np.full(posed.vertices.shape, np.nan)
@@ -129,7 +137,21 @@ class InputView:
         colors[idx] = rgb
         facing = facing_cosine(posed.vertices, normals, full)
         labels = out["labels"][0]
-        return cls(camera, image.to(device), mask.to(device), person, labels, seen, normals, shading, colors, facing)
+        yaw = body_yaw(full, body_rotation(subject.body, posed.bone_transforms))
+        return cls(
+            pose,
+            camera,
+            image.to(device),
+            mask.to(device),
+            person,
+            labels,
+            seen,
+            normals,
+            shading,
+            colors,
+            facing,
+            yaw,
+        )
 
     def part_colors(self) -> np.ndarray:
         """(P, 3) mean colour of every body part in the image (the whole person's where a part is unseen)."""
@@ -146,31 +168,48 @@ class InputView:
 
 @dataclass
 class FitViews:
-    """Everything the fit's losses compare against, built once before training."""
+    """Everything the fit's losses compare against, built once before training.
 
-    input: InputView
+    ``observed`` are the input photos the fit reconstructs (every input view of a multi-photo subject; only the
+    first with ``multi_photo = "reference"``); ``references`` are the other input photos, which only the semantic
+    prior's reference crops read (the paper's use of extra photos)."""
+
+    observed: list[InputView]
+    references: list[InputView]
     ring: list[Camera]
     prior: PriorViews
     poses: dict[int, list[int]]  # stage -> its training poses
+
+    @property
+    def input(self) -> InputView:
+        """The first input photo: the view novel views are measured from."""
+        return self.observed[0]
 
     @classmethod
     def build(cls, subject: Subject, cfg: FitConfig, device: torch.device) -> FitViews:
         body = subject.body
         renderer = MeshRenderer(body.faces, MeshAppearance(vertex_colors=template_colors(body)), body.face_parts())
+        views = []
+        for name, frame in subject.inputs:
+            view = InputView.load(subject, (name, frame), cfg.input_scale, renderer, device)
+            covered = view.labels >= 0
+            iou = (covered & view.person).sum() / max((covered | view.person).sum(), 1)
+            if iou < MIN_INPUT_IOU:
+                raise SubjectError(
+                    f"{subject.root}: the body in input view ({name}, frame {frame}) covers {iou:.0%} of its mask "
+                    f"(IoU); check that frame's transl and global_orient in motion.npz against camera {name!r} in "
+                    "cameras.json"
+                )
+            views.append(view)
+        n_observed = len(views) if cfg.multi_photo == "observed" else 1
+        observed, references = views[:n_observed], views[n_observed:]
         input_only = cfg.train_poses == "input"
+        first = list(dict.fromkeys(v.pose for v in observed))
         poses = {
-            1: training_poses(subject, cfg.init_frame_step, input_only),
-            2: training_poses(subject, cfg.train_frame_step, input_only),
+            1: training_poses(subject, cfg.init_frame_step, input_only, first),
+            2: training_poses(subject, cfg.train_frame_step, input_only, first),
         }
         ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
-        input_view = InputView.load(subject, cfg.input_scale, renderer, device)
-        body = input_view.labels >= 0
-        iou = (body & input_view.person).sum() / max((body | input_view.person).sum(), 1)
-        if iou < MIN_INPUT_IOU:
-            raise SubjectError(
-                f"{subject.root}: the body in the input pose covers {iou:.0%} of the input mask (IoU); check the "
-                f"input frame's transl and global_orient in motion.npz against the input camera in cameras.json"
-            )
-        needed = list(dict.fromkeys(poses[1] + poses[2]))
+        needed = list(dict.fromkeys(poses[1] + poses[2] + [v.pose for v in references]))
         prior = PriorViews.render(subject, needed, ring, renderer)
-        return cls(input_view, ring, prior, poses)
+        return cls(observed, references, ring, prior, poses)

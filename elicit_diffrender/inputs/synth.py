@@ -481,14 +481,23 @@ def synthesize(
     texture_size: int = 1024,
     force: bool = False,
     person: str | None = None,
+    photos: bool = False,
 ) -> Path:
     """Write a synthetic ``elicit-subject/1`` folder and its contact sheet, as a whole (a non-empty ``out``
-    only with ``force``); returns the folder. ``person`` names one of ``PEOPLE`` instead of a seed."""
+    only with ``force``); returns the folder. ``person`` names one of ``PEOPLE`` instead of a seed; ``photos``
+    also renders the second photos of a multi-photo test (:func:`extra_photos`)."""
     outfit = None if person is None else person_outfit(person)
     seed = seed if outfit is None else outfit.seed
     with folder_in_place(out, force) as tmp:
-        _synthesize(seed, tmp, motion_name, size, spp, n_cameras, texture_size, outfit, person)
+        _synthesize(seed, tmp, motion_name, size, spp, n_cameras, texture_size, outfit, person, photos)
     return Path(out)
+
+
+def extra_photos(n_cameras: int, n_frames: int) -> dict[str, tuple[str, int]]:
+    """A multi-photo test's second photos: ``back``, the ring camera nearest 180 degrees from the input, and
+    ``side``, nearest 90 degrees, both in the motion's middle frame (another pose than the input's)."""
+    frame = n_frames // 2
+    return {"back": (f"cam{(n_cameras + 1) // 2:02d}", frame), "side": (f"cam{round(n_cameras / 4):02d}", frame)}
 
 
 def _synthesize(
@@ -501,6 +510,7 @@ def _synthesize(
     texture_size: int,
     outfit: Outfit | None = None,
     person_name: str | None = None,
+    photos: bool = False,
 ) -> None:
     start = time.perf_counter()
     person = make_person(seed, texture_size, outfit)
@@ -512,6 +522,8 @@ def _synthesize(
     if person_name is not None:
         extra["person"] = person_name
     label = f"synth {person_name}" if person_name else f"synth seed {seed}"
+    if photos:
+        extra["photos"] = extra_photos(n_cameras, len(motion))
     render_subject(out, person, spec, motion, size, spp, n_cameras, label, extra, start)
 
 
@@ -542,14 +554,16 @@ def render_subject(
     start: float,
 ) -> None:
     """Render ``person`` (anything with ``clothed_vertices(pose, orient, transl)``, a ``renderer`` and a
-    ``texture``) from a ring of ``n_cameras`` at the motion's first (input) frame and from the input camera at
-    every other frame, and write the subject, its texture and its contact sheet into ``out``."""
+    ``texture``) from a ring of ``n_cameras`` at the motion's first (input) frame, from the input camera at
+    every other frame and at the (camera, frame) views ``extra["photos"]`` names, and write the subject, its
+    texture and its contact sheet into ``out``."""
     from tqdm import tqdm
 
     focal = 650.0 * size / 512.0
     cameras = {c.name: c for c in ring_cameras(n=n_cameras, focal=focal, width=size, height=size)}
     input_cam = "cam00"
     jobs = [(name, 0) for name in cameras] + [(input_cam, f) for f in range(1, len(motion))]
+    jobs += [tuple(view) for view in extra.get("photos", {}).values() if tuple(view) not in jobs]
     views = {}
     by_frame: dict[int, list[str]] = {}
     for cam, f in jobs:

@@ -87,8 +87,9 @@ class Avatar(nn.Module):
         self.register_buffer("canonical_bones", canonical_bones.to(torch.float32).clone())
         self.field = CanonicalField(box, voxel_size, activation, occupancy_cell)
         self.motion_weights = MotionWeights(box, len(reduced_joints), weight_res)
-        self.pose_delta = nn.Parameter(torch.zeros(len(reduced_joints), 3))
-        # The body-model pose (pose, orient, transl, flattened) that ``pose_delta`` corrects; empty: none
+        # A rotation per reduced joint for each refined pose (the fit's input poses), (K, B, 3)
+        self.pose_delta = nn.Parameter(torch.zeros(1, len(reduced_joints), 3))
+        # The body-model poses (pose, orient, transl, flattened) that ``pose_delta`` corrects, (K, D); empty: none
         self.register_buffer("refined_pose", torch.zeros(0, dtype=torch.float64))
         self._body: BodyModel | None = None
         # The canonical body's signed distance at the field's nodes (``from_body``; not stored in files)
@@ -180,31 +181,37 @@ class Avatar(nn.Module):
         carries its learned correction (``refine_input_pose``) unless ``refine`` is off."""
         posed = self.body.pose(pose, global_orient, transl)
         bones = torch.as_tensor(self.body.reduced_transforms(posed), dtype=torch.float32, device=self.device)
-        if refine and self.is_refined_pose(pose, global_orient, transl):
-            bones = self.refined(bones)
-        return bones
+        k = self.refined_index(pose, global_orient, transl) if refine else None
+        return bones if k is None else self.refined(bones, k)
 
     @staticmethod
     def _flat_pose(pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
         return np.concatenate([np.ravel(pose), np.ravel(global_orient), np.ravel(transl)]).astype(np.float64)
 
-    def set_refined_pose(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> None:
-        """Name the body-model pose that ``pose_delta`` corrects (the fit's input pose)."""
-        self.refined_pose = torch.as_tensor(self._flat_pose(pose, global_orient, transl), device=self.device)
+    def set_refined_poses(self, poses: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Name the body-model poses (pose, orient, transl) that ``pose_delta`` corrects (the fit's input poses);
+        their corrections start at zero."""
+        flat = np.stack([self._flat_pose(*p) for p in poses])
+        self.refined_pose = torch.as_tensor(flat, device=self.device)
+        shape = (len(poses), len(self.reduced_joints), 3)
+        self.pose_delta = nn.Parameter(torch.zeros(shape, device=self.device), self.pose_delta.requires_grad)
 
-    def is_refined_pose(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> bool:
-        """Whether ``bone_transforms`` corrects this body-model pose (the fit's input pose, when refined)."""
+    def refined_index(self, pose: np.ndarray, global_orient: np.ndarray, transl: np.ndarray) -> int | None:
+        """Which of the refined poses this body-model pose is (``bone_transforms`` corrects it); None: none."""
         flat = self._flat_pose(pose, global_orient, transl)
-        ref = self.refined_pose.detach().cpu().numpy()
-        return ref.shape == flat.shape and bool(np.allclose(ref, flat, rtol=0.0, atol=1e-6))
+        ref = self.refined_pose.detach().cpu().numpy().reshape(-1, flat.size) if self.refined_pose.numel() else []
+        for k, row in enumerate(ref):
+            if np.allclose(row, flat, rtol=0.0, atol=1e-6):
+                return k
+        return None
 
-    def refined(self, bones: torch.Tensor) -> torch.Tensor:
-        """Apply the learned pose correction (a rotation per reduced joint, down the kinematic chain)."""
+    def refined(self, bones: torch.Tensor, k: int = 0) -> torch.Tensor:
+        """Apply refined pose ``k``'s learned correction (a rotation per reduced joint, down the kinematic chain)."""
         local = []
         for b, p in enumerate(self.parents):
             local.append(bones[b] if p < 0 else rigid_inverse(bones[p]) @ bones[b])
         delta = torch.eye(4, device=bones.device).repeat(len(self.parents), 1, 1)
-        delta[:, :3, :3] = axis_angle_to_matrix(self.pose_delta)
+        delta[:, :3, :3] = axis_angle_to_matrix(self.pose_delta[k])
         out: list[torch.Tensor] = []
         for b, p in enumerate(self.parents):
             out.append((local[b] if p < 0 else out[p] @ local[b]) @ delta[b])
@@ -397,7 +404,13 @@ class Avatar(nn.Module):
                 data["weight_res"],
                 data["config"],
             )
-            avatar.refined_pose = t.setdefault("refined_pose", torch.zeros(0, dtype=torch.float64)).clone()
+            refined = t.setdefault("refined_pose", torch.zeros(0, dtype=torch.float64)).clone()
+            if t["pose_delta"].dim() == 2:  # files from before multi-photo fits: one refined pose
+                t["pose_delta"] = t["pose_delta"][None]
+                refined = refined.reshape(1, -1) if refined.numel() else refined
+            t["refined_pose"] = refined
+            avatar.refined_pose = refined
+            avatar.pose_delta = nn.Parameter(torch.zeros_like(t["pose_delta"]))
             avatar.load_state_dict(t)
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""

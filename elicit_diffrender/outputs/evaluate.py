@@ -1,8 +1,9 @@
 """``elicit eval``: novel-view and novel-pose metrics in the Neural Body protocol.
 
-* novel view: the input frame from every camera except the input one; ``side`` summarises the cameras
-  ``SIDE_DEGREES`` from the input camera around the body's vertical axis, ``rear`` those more than
-  ``REAR_DEGREES`` from it (the side a single photo never shows);
+* novel view: the input frame from every camera except the input one; ``front`` summarises the cameras
+  up to the first of ``SIDE_DEGREES`` from the input camera around the body's vertical axis, ``side``
+  those within ``SIDE_DEGREES``, ``rear`` those more than ``REAR_DEGREES`` from it (the side a single
+  photo never shows);
 * novel pose: the input camera at every other frame.
 
 A run fitted on another subject of the same person (the photo path: ``elicit prepare`` on a
@@ -215,6 +216,23 @@ def align_bodies(fitted: Subject, truth: Subject) -> BodyAlignment:
     )
 
 
+def camera_error(
+    fitted: Subject, fitted_view: tuple[str, int], truth: Subject, true_view: tuple[str, int]
+) -> tuple[float, float]:
+    """How far a prepared input camera lies from the true one, after the similarity (:func:`umeyama`) that maps
+    the prepared body in that view's pose onto the true body in its pose: metres between the centres and degrees
+    between the orientations. A photo fixes only where its camera is against the body, which this measures."""
+    bodies = []
+    for subject, (_, frame) in ((fitted, fitted_view), (truth, true_view)):
+        bodies.append(subject.body.pose(*subject.motion.frame(subject.frame_index(frame))).vertices)
+    scale, rot, transl = umeyama(*bodies)
+    camera, true_camera = fitted.cameras[fitted_view[0]], truth.cameras[true_view[0]]
+    centre = scale * rot @ camera.center + transl
+    relative = true_camera.R @ (camera.R @ rot.T).T
+    cos = (np.trace(relative) - 1.0) / 2.0
+    return float(np.linalg.norm(centre - true_camera.center)), float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+
+
 def evaluate(
     subject: Subject,
     render: Renderer,
@@ -275,6 +293,10 @@ def evaluate(
         result[split] = {**summary(rows), "per_view": rows}
         if split == "novel_view":
             lo, hi = SIDE_DEGREES
+            result[split]["front"] = {
+                "degrees": [0.0, lo],
+                **summary([r for r in rows if r["degrees_from_input"] <= lo]),
+            }
             result[split]["side"] = {
                 "degrees": list(SIDE_DEGREES),
                 **summary([r for r in rows if lo < r["degrees_from_input"] <= hi]),
