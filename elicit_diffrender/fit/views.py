@@ -196,9 +196,9 @@ class FitViews:
             iou = (covered & view.person).sum() / max((covered | view.person).sum(), 1)
             if iou < MIN_INPUT_IOU:
                 raise SubjectError(
-                    f"{subject.root}: the body in input view ({name}, frame {frame}) covers {iou:.0%} of its mask "
-                    f"(IoU); check that frame's transl and global_orient in motion.npz against camera {name!r} in "
-                    "cameras.json"
+                    f"{subject.root}: the body in the input pose of view ({name}, frame {frame}) covers {iou:.0%} "
+                    f"of the input mask (IoU); check that frame's transl and global_orient in motion.npz against "
+                    f"camera {name!r} in cameras.json"
                 )
             views.append(view)
         n_observed = len(views) if cfg.multi_photo == "observed" else 1
