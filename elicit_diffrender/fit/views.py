@@ -204,12 +204,12 @@ class FitViews:
         n_observed = len(views) if cfg.multi_photo == "observed" else 1
         observed, references = views[:n_observed], views[n_observed:]
         input_only = cfg.train_poses == "input"
-        first = list(dict.fromkeys(v.pose for v in observed))
+        input_poses = list(dict.fromkeys(v.pose for v in observed))
         poses = {
-            1: training_poses(subject, cfg.init_frame_step, input_only, first),
-            2: training_poses(subject, cfg.train_frame_step, input_only, first),
+            1: training_poses(subject, cfg.init_frame_step, input_only, input_poses),
+            2: training_poses(subject, cfg.train_frame_step, input_only, input_poses),
         }
         ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
-        needed = list(dict.fromkeys(poses[1] + poses[2] + [v.pose for v in references]))
+        needed = list(dict.fromkeys(poses[1] + poses[2]))  # a reference photo's crops read its own labels
         prior = PriorViews.render(subject, needed, ring, renderer)
         return cls(observed, references, ring, prior, poses)
