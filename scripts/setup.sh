@@ -3,6 +3,7 @@
 #   - Debian's libllvm19 for Dr.Jit's LLVM backend (the system's LLVM 15 crashes Mitsuba's llvm variants)
 #   - a virtual environment in .venv with a torch/torchvision pair that import together
 #   - this package, editable, with its dev extras
+#   - Blender as a Python module (bpy) in .venv-blender, for the test that opens the exported GLB in Blender
 #   - Node.js, Chromium and npm packages (the glTF validator, three.js, esbuild) in .tools for the glTF
 #     export's checks and its viewer page
 #   - the Anny body model's one-time cache (about a minute, once)
@@ -68,7 +69,22 @@ if [ "${ELICIT_NO_MEDIAPIPE:-0}" != 1 ] && [ ! -x "$ROOT/.venv-mediapipe/bin/pyt
   "$ROOT/.venv-mediapipe/bin/python" -c "import mediapipe" && touch "$ROOT/.venv-mediapipe/.ok"
 fi
 
-# 6. Web tools for the glTF export and its viewer page: Node.js, the Khronos glTF validator, three.js and
+# 6. Blender as a Python module (bpy 5.0.1, about 1 GB) in its own environment, for the test that opens the
+#    exported GLB with Blender's own glTF importer: its wheels exist for Python 3.11 only, and it pins numpy 1.x.
+if [ "${ELICIT_NO_BLENDER:-0}" != 1 ] && [ ! -f "$ROOT/.venv-blender/.ok" ]; then
+  PY311=$(command -v python3.11 || true)
+  [ -z "$PY311" ] && "$PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' && PY311=$PY
+  if [ -z "$PY311" ]; then
+    log "Python 3.11 is missing: bpy (Blender as a module, for the export's Blender test) needs it; set ELICIT_NO_BLENDER=1 to skip"
+    exit 1
+  fi
+  log "creating .venv-blender (bpy==5.0.1)"
+  "$PY311" -m venv "$ROOT/.venv-blender"
+  "$ROOT/.venv-blender/bin/python" -m pip install -q --disable-pip-version-check "bpy==5.0.1"
+  "$ROOT/.venv-blender/bin/python" -c "import bpy" && touch "$ROOT/.venv-blender/.ok"
+fi
+
+# 7. Web tools for the glTF export and its viewer page: Node.js, the Khronos glTF validator, three.js and
 #    esbuild (npm) in .tools/node; the viewer bundled into .tools/viewer/viewer.js; Chromium (headless) for
 #    the page's screenshot test.
 NPM_PACKAGES=(gltf-validator@2.0.0-dev.3.10 three@0.187.0 esbuild@0.25.0)
@@ -100,6 +116,6 @@ if [ ! -f "$bundle" ] || [ "$ROOT/scripts/viewer/viewer.js" -nt "$bundle" ] || [
     "$ROOT/scripts/viewer/viewer.js" --bundle --format=iife --minify --log-level=warning --outfile="$bundle"
 fi
 
-# 7. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
+# 8. Anny builds a cache on first use (about a minute); do it once here, not in the demo or tests.
 "$VENV/bin/python" -m elicit_diffrender.body.anny_cache
 log "ready: $VENV"

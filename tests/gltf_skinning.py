@@ -30,14 +30,32 @@ def quat_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
-def posed_mesh(path, frame: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices (posed by glTF skinning at animation keyframe ``frame``, or at rest with None), faces, colours."""
+def surface_colors(path) -> dict:
+    """The first primitive's colours as stored: ``{"vertex_colors": (V, 3) linear}`` (``COLOR_0``) or
+    ``{"uvs": (V, 2), "texture": (H, W, 3) sRGB in [0, 1]}`` (``TEXCOORD_0`` and its material's PNG)."""
+    import io
+
+    import imageio.v3 as iio
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    blob = gltf.binary_blob()
+    prim = gltf.meshes[0].primitives[0]
+    if prim.attributes.COLOR_0 is not None:
+        return {"vertex_colors": accessor(gltf, blob, prim.attributes.COLOR_0)}
+    texture = gltf.textures[gltf.materials[prim.material].pbrMetallicRoughness.baseColorTexture.index]
+    view = gltf.bufferViews[gltf.images[texture.source].bufferView]
+    png = blob[view.byteOffset : view.byteOffset + view.byteLength]
+    image = iio.imread(io.BytesIO(png), extension=".png")[..., :3].astype(np.float32) / 255
+    return {"uvs": accessor(gltf, blob, prim.attributes.TEXCOORD_0), "texture": image}
+
+
+def posed_mesh(path, frame: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (posed by glTF skinning at animation keyframe ``frame``, or at rest with None) and faces."""
     gltf = pygltflib.GLTF2().load(str(path))
     blob = gltf.binary_blob()
     prim = gltf.meshes[0].primitives[0]
     verts = accessor(gltf, blob, prim.attributes.POSITION).astype(np.float64)
     faces = accessor(gltf, blob, prim.indices).reshape(-1, 3)
-    colors = accessor(gltf, blob, prim.attributes.COLOR_0)
     joints = accessor(gltf, blob, prim.attributes.JOINTS_0).astype(np.int64)
     weights = accessor(gltf, blob, prim.attributes.WEIGHTS_0).astype(np.float64)
     skin = gltf.skins[0]
@@ -64,7 +82,7 @@ def posed_mesh(path, frame: int | None) -> tuple[np.ndarray, np.ndarray, np.ndar
     mats = np.stack([world(j) @ ibm[k] for k, j in enumerate(skin.joints)])  # (J, 4, 4)
     homog = np.concatenate([verts, np.ones((len(verts), 1))], 1)
     per_joint = np.einsum("vkij,vj->vki", mats[joints], homog)[..., :3]
-    return (weights[..., None] * per_joint).sum(1), faces, colors
+    return (weights[..., None] * per_joint).sum(1), faces
 
 
 def silhouette(camera, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -78,3 +96,7 @@ def silhouette(camera, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
             rr, cc = polygon(uv[f, 1] - 0.5, uv[f, 0] - 0.5, mask.shape)
             mask[rr, cc] = True
     return mask
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.maximum(c, 0) ** (1 / 2.4) - 0.055)

@@ -93,6 +93,7 @@ def test_command_line_numbers(tmp_path, capsys):
         (["render", "r", "--motion", "rest", "--cameras", "orbit", "--out", "o.mp4", "--samples", "0"], "--samples"),
         (["render", "r", "--motion", "rest", "--cameras", "orbit", "--out", "o.mp4", "--fps", "0"], "--fps"),
         (["eval", "r", "s", "--out", "m.json", "--scale", "2"], "--scale"),
+        (["export", "r", "--out", "a.glb", "--texture-size", "16"], "--texture-size: must be an integer in [64, 8192]"),
         (["prepare", "p.png", "--out", "o", "--focal", "-500"], "--focal: must be a number in [1, 1e+06]"),
         (["synth", "--out", "o", "--size", "-3"], "--size"),
     ):

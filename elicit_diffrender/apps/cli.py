@@ -74,11 +74,13 @@ def _render(args: argparse.Namespace) -> None:
 def _export(args: argparse.Namespace) -> None:
     from ..outputs.export import export_run
 
-    summary = export_run(args.run, args.out, args.motion, args.resolution, args.faces)
+    texture_size = None if args.vertex_colors else args.texture_size
+    summary = export_run(args.run, args.out, args.motion, args.resolution, args.faces, texture_size)
     frames = f", {summary['frames']} frames of {args.motion}" if summary["frames"] else ""
     print(
         f"wrote {summary['path']} ({summary['vertices']} vertices, {summary['faces']} faces, "
-        f"{summary['joints']} joints{frames}; {summary['appearance']}; {summary['seconds']:.1f} s)"
+        f"{summary['joints']} joints{frames}; {summary['appearance']}; {summary['bytes'] / 2**20:.1f} MiB; "
+        f"{summary['seconds']:.1f} s)"
     )
 
 
@@ -274,7 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--fps", type=float_between(0.1, 1000.0), default=30.0)
     v.set_defaults(func=_render)
 
-    x = sub.add_parser("export", help="the avatar as an animated glTF binary (.glb): mesh, colours, skeleton, motion")
+    x = sub.add_parser(
+        "export", help="the avatar as an animated glTF binary (.glb): mesh, baked texture, skeleton, motion"
+    )
     x.add_argument("run", type=Path, help="a run folder (or its avatar file)")
     x.add_argument("--out", type=Path, required=True, help="OUT.glb")
     x.add_argument(
@@ -287,6 +291,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="marching-cubes voxel, metres (default: the avatar's)",
     )
     x.add_argument("--faces", type=int_between(100, 10_000_000), default=None, help="decimate to about this many faces")
+    x.add_argument(
+        "--texture-size",
+        type=int_between(64, 8192),
+        default=1024,
+        help="side of the baked texture in pixels (default: 1024)",
+    )
+    x.add_argument(
+        "--vertex-colors", action="store_true", help="colour the vertices instead of baking a UV texture (smaller)"
+    )
     x.set_defaults(func=_export)
 
     page = sub.add_parser("view", help="a self-contained web page that shows the avatar and plays its animation")

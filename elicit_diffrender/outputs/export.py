@@ -6,9 +6,14 @@
   that density. Against the volume render's ``alpha > 0.5`` silhouette at three poses this level gave
   IoU 0.93-0.97 on the fitted demo avatar and 0.92-0.96 on a small test fit (0.3: 0.89-0.96; 0.8:
   0.89-0.98). Only components with at least ``MIN_COMPONENT`` of the largest one's faces are kept
-  (floaters go); ``faces`` decimates (quadric).
-* Appearance: the canonical colour grid sampled at the vertices, as glTF vertex colours (``COLOR_0``,
-  linear as glTF wants them: the grid holds the photos' sRGB values, converted); no UV texture.
+  (floaters go); ``faces`` decimates (quadric); vertices within 10 micrometres are merged and the
+  triangles left without area dropped.
+* Appearance (default): a UV atlas and a ``texture_size``-square texture baked from the radiance field
+  (:mod:`.texture`), stored as a PNG in the GLB: one material whose ``baseColorTexture`` reads
+  ``TEXCOORD_0``, linear filtering with mip-maps, clamped at the edges. Vertices on chart seams are
+  duplicated (same position and skin weights). With ``vertex_colors``: the canonical colour grid sampled
+  at the vertices, as glTF vertex colours (``COLOR_0``, linear as glTF wants them: the grid holds the
+  photos' sRGB values, converted), and no texture.
 * Rig: one glTF joint per bone of the avatar's reduced skeleton, at its canonical (rest) transform,
   with inverse bind matrices; per vertex the 4 largest motion weights, normalised (``JOINTS_0``,
   ``WEIGHTS_0``). glTF skinning, ``v' = sum_j w_j J_j(t) IBM_j v``, is then the avatar's forward LBS,
@@ -37,25 +42,59 @@ from ..core.io import atomic_write
 from ..data.motions import Motion, load_motion
 from ..model.avatar import Avatar, sample_grid
 from ..model.field import grid_points
+from .texture import DEFAULT_BAKE, Bake, bake_texture, uv_atlas, vertex_normals
 
 MIN_COMPONENT = 0.02  # keep mesh components with at least this share of the largest one's faces
 SURFACE_DENSITY = 0.45  # marching-cubes level, density per voxel of the avatar's grid
 MAX_JOINTS_PER_VERTEX = 4
+MIN_FACE_AREA = 1e-10  # square metres; smaller triangles are dropped
+MERGE_DIGITS = 5  # vertices equal to 10 micrometres are one
 
 
 class ExportError(ElicitError):
     """The avatar cannot be exported (nothing opaque, a motion that does not fit the body)."""
 
 
+DEFAULT_TEXTURE_SIZE = 1024
+
+
 @dataclass
 class AvatarMesh:
-    """The canonical surface of an avatar, with its colours and skinning."""
+    """The canonical surface of an avatar, with its colours and skinning (and, once textured, its atlas)."""
 
     vertices: np.ndarray  # (V, 3) float32, canonical space, metres
     faces: np.ndarray  # (F, 3) int
     colors: np.ndarray  # (V, 3) float32 in [0, 1], linear (glTF's COLOR_0)
     joints: np.ndarray  # (V, 4) uint16 bone indices
     weights: np.ndarray  # (V, 4) float32, rows sum to 1
+    uvs: np.ndarray | None = None  # (V, 2) float32, glTF's TEXCOORD_0 (v down)
+    texture: np.ndarray | None = None  # (S, S, 3) uint8, sRGB
+
+
+def textured_mesh(
+    avatar: Avatar, mesh: AvatarMesh, size: int = DEFAULT_TEXTURE_SIZE, bake: Bake = DEFAULT_BAKE
+) -> AvatarMesh:
+    """``mesh`` charted into a UV atlas, with a ``size``-square texture baked from ``avatar`` (see :mod:`.texture`)."""
+
+    atlas = uv_atlas(mesh.vertices, mesh.faces, size)
+    keep = atlas.vertex_map
+    normals = vertex_normals(mesh.vertices.astype(np.float64), mesh.faces)[keep]
+    vertices = mesh.vertices[keep]
+    texture = bake_texture(avatar, vertices, normals, atlas.faces, atlas.uvs, size, bake)
+    return AvatarMesh(
+        vertices, atlas.faces, mesh.colors[keep], mesh.joints[keep], mesh.weights[keep], atlas.uvs, texture
+    )
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """An (H, W, 3) uint8 image as PNG file bytes."""
+    import io
+
+    import imageio.v3 as iio
+
+    out = io.BytesIO()
+    iio.imwrite(out, image, extension=".png")
+    return out.getvalue()
 
 
 def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int | None = None) -> AvatarMesh:
@@ -85,6 +124,13 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
         mesh = trimesh.util.concatenate([p for p in parts if len(p.faces) >= MIN_COMPONENT * largest])
     if faces is not None and len(mesh.faces) > faces:
         mesh = mesh.simplify_quadric_decimation(face_count=int(faces))
+    # Slivers: marching cubes puts vertices micrometres apart where the surface grazes a grid node; they are
+    # merged, and the triangles left with no area (a renderer's NaN normals) dropped.
+    mesh.merge_vertices(digits_vertex=MERGE_DIGITS)
+    stored = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)[mesh.faces]  # as the GLB holds them
+    area = np.linalg.norm(np.cross(stored[:, 1] - stored[:, 0], stored[:, 2] - stored[:, 0]), axis=1) / 2
+    mesh.update_faces(area > MIN_FACE_AREA)
+    mesh.remove_unreferenced_vertices()
     v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     with torch.no_grad():
         srgb = torch.sigmoid(sample_grid(f.color.detach().permute(3, 0, 1, 2).cpu(), f.box.cpu(), v)).numpy()
@@ -158,6 +204,7 @@ class _Buffer:
 
 FLOAT, UINT16, UINT32 = 5126, 5123, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
 
 
 def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: str = "avatar") -> tuple[dict, bytes]:
@@ -166,8 +213,11 @@ def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: 
     rest = avatar.canonical_bones.detach().cpu().double().numpy()  # (B, 4, 4) world, canonical pose
     parents = list(avatar.parents)
     n_bones = len(parents)
-    pos = buf.add(mesh.vertices.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER, bounds=True)
-    col = buf.add(mesh.colors.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER)
+    attributes = {"POSITION": buf.add(mesh.vertices.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER, bounds=True)}
+    if mesh.texture is None:
+        attributes["COLOR_0"] = buf.add(mesh.colors.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER)
+    else:
+        attributes["TEXCOORD_0"] = buf.add(mesh.uvs.astype(np.float32), FLOAT, "VEC2", ARRAY_BUFFER)
     jnt = buf.add(mesh.joints.astype(np.uint16), UINT16, "VEC4", ARRAY_BUFFER)
     wgt = buf.add(mesh.weights.astype(np.float32), FLOAT, "VEC4", ARRAY_BUFFER)
     idx = buf.add(mesh.faces.astype(np.uint32).reshape(-1), UINT32, "SCALAR", ELEMENT_ARRAY_BUFFER)
@@ -198,7 +248,7 @@ def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: 
                 "name": name,
                 "primitives": [
                     {
-                        "attributes": {"POSITION": pos, "COLOR_0": col, "JOINTS_0": jnt, "WEIGHTS_0": wgt},
+                        "attributes": {**attributes, "JOINTS_0": jnt, "WEIGHTS_0": wgt},
                         "indices": idx,
                         "material": 0,
                     }
@@ -207,7 +257,7 @@ def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: 
         ],
         "materials": [
             {
-                "name": "vertex colour",
+                "name": "vertex colour" if mesh.texture is None else "baked texture",
                 "pbrMetallicRoughness": {
                     "baseColorFactor": [1, 1, 1, 1],
                     "metallicFactor": 0.0,
@@ -218,6 +268,18 @@ def glb_document(avatar: Avatar, mesh: AvatarMesh, motion: Motion | None, name: 
         ],
         "skins": [{"joints": [1 + b for b in range(n_bones)], "inverseBindMatrices": ibm_acc, "skeleton": roots[0]}],
     }
+    if mesh.texture is not None:
+        png = png_bytes(mesh.texture)
+        while len(buf.data) % 4:
+            buf.data.append(0)
+        buf.views.append({"buffer": 0, "byteOffset": len(buf.data), "byteLength": len(png)})
+        buf.data += png
+        doc["images"] = [{"name": "base colour", "bufferView": len(buf.views) - 1, "mimeType": "image/png"}]
+        doc["samplers"] = [
+            {"magFilter": LINEAR, "minFilter": LINEAR_MIPMAP_LINEAR, "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}
+        ]
+        doc["textures"] = [{"sampler": 0, "source": 0}]
+        doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] = {"index": 0, "texCoord": 0}
     if motion is not None:
         world = np.stack(
             [avatar.bone_transforms(*motion.frame(i)).detach().cpu().double().numpy() for i in range(len(motion))]
@@ -262,12 +324,18 @@ def export_glb(
     motion: Motion | None = None,
     resolution: float | None = None,
     faces: int | None = None,
+    texture_size: int | None = DEFAULT_TEXTURE_SIZE,
 ) -> dict:
-    """Write ``out`` (a .glb) and return a summary: vertices, faces, joints, frames, seconds."""
+    """Write ``out`` (a .glb) and return a summary: vertices, faces, joints, frames, appearance, bytes, seconds.
+    ``texture_size`` None: vertex colours instead of a baked texture."""
     start = time.perf_counter()
     if Path(out).suffix.lower() != ".glb":
         raise ExportError(f"{out}: the output must be a .glb file")
+    if texture_size is not None and texture_size < 1:
+        raise ExportError(f"the texture size must be a positive number of pixels, got {texture_size}")
     mesh = canonical_mesh(avatar, resolution, faces)
+    if texture_size is not None:
+        mesh = textured_mesh(avatar, mesh, texture_size)
     doc, binary = glb_document(avatar, mesh, motion)
     data = glb_bytes(doc, binary)
     path = atomic_write(Path(out), lambda tmp: tmp.write_bytes(data))
@@ -277,7 +345,10 @@ def export_glb(
         "faces": int(len(mesh.faces)),
         "joints": len(avatar.parents),
         "frames": 0 if motion is None else len(motion),
-        "appearance": "vertex colours (COLOR_0)",
+        "appearance": "vertex colours (COLOR_0)"
+        if texture_size is None
+        else f"{texture_size}x{texture_size} baked texture (PNG, TEXCOORD_0)",
+        "bytes": len(data),
         "seconds": time.perf_counter() - start,
     }
 
@@ -288,6 +359,7 @@ def export_run(
     motion: str = "walk_in_place",
     resolution: float | None = None,
     faces: int | None = None,
+    texture_size: int | None = DEFAULT_TEXTURE_SIZE,
 ) -> dict:
     """:func:`export_glb` of a run folder's (or avatar file's) avatar, with a motion by name or file
     (``"none"``: no animation); the explicit-texture baseline has no field to mesh and is refused."""
@@ -296,4 +368,5 @@ def export_run(
     avatar = load_avatar(run)
     if not isinstance(avatar, Avatar):
         raise ExportError(f"{run}: the explicit-texture baseline has no radiance field to export")
-    return export_glb(avatar, out, None if motion == "none" else load_motion(motion, avatar.body), resolution, faces)
+    chosen = None if motion == "none" else load_motion(motion, avatar.body)
+    return export_glb(avatar, out, chosen, resolution, faces, texture_size)

@@ -1,6 +1,7 @@
 // The avatar viewer page: the GLB embedded in the page as base64 (<script id="avatar">), orbit controls,
-// its first animation playing in a loop. Bundled with three.js into one script by scripts/setup.sh
-// (esbuild), so that the page opens from file:// without a server or the network.
+// its first animation playing in a loop; <body data-material> says what colours it shows. Bundled with
+// three.js into one script by scripts/setup.sh (esbuild), so that the page opens from file:// without a
+// server or the network.
 import * as THREE from "three";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
@@ -26,12 +27,19 @@ let mixer = null;
 window.viewerFrames = 0;
 new GLTFLoader().parse(bytes.buffer, "", (gltf) => {
   scene.add(gltf.scene);
+  // Unlit, like the volume render: the baked texture when the GLB has one, else the vertex colours.
+  const shown = [];
   gltf.scene.traverse((o) => {
     if (o.isMesh) {
-      o.material = new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide });
+      const map = o.material.map || null;
+      o.material = map
+        ? new THREE.MeshBasicMaterial({ map, side: THREE.DoubleSide })
+        : new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide });
+      shown.push(map ? `texture ${map.image.width}x${map.image.height}` : "vertex colours");
       o.frustumCulled = false;
     }
   });
+  document.body.dataset.material = shown.join(", ");
   const box = new THREE.Box3().setFromObject(gltf.scene);
   const centre = box.getCenter(new THREE.Vector3());
   controls.target.copy(centre);
@@ -53,4 +61,5 @@ renderer.setAnimationLoop(() => {
   if (mixer) mixer.update(clock.getDelta());
   renderer.render(scene, camera);
   window.viewerFrames += 1;
+  window.viewerTime = mixer ? mixer.time : 0; // seconds of animation played, for the page's tests
 });
