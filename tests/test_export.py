@@ -251,3 +251,26 @@ def test_viewer_page_shows_the_avatar_and_plays_it(exported, tmp_path, capsys):
         shots.close()
     assert main(["view", str(root / "nothing.glb"), "--out", str(tmp_path / "p2")]) == 2
     assert "nothing.glb" in capsys.readouterr().err
+
+
+def test_uv_rasteriser_covers_each_texel_once_with_its_barycentrics():
+    """Two triangles tiling the unit square: every texel centre falls in one of them (edges shared without
+    gaps), and its barycentric coordinates give back that centre."""
+    from elicit_diffrender.outputs.texture import fill_seams, rasterize_uv
+
+    uvs = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    texels = rasterize_uv(uvs, faces, 16)
+    covered = np.zeros((16, 16), int)
+    np.add.at(covered, (texels.rows, texels.cols), 1)
+    assert covered.min() >= 1 and (covered > 1).sum() <= 16  # the shared diagonal may count twice
+    centres = np.einsum("nk,nkc->nc", texels.barycentric, uvs[faces[texels.faces]]) * 16
+    assert np.allclose(centres, np.stack([texels.cols + 0.5, texels.rows + 0.5], 1))
+    # One triangle in a corner: only texels with centres inside it, then the fill reaches every texel.
+    half = rasterize_uv(np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.5]]), np.array([[0, 1, 2]]), 16)
+    assert len(half.rows) == 36 and ((half.rows + 0.5) + (half.cols + 0.5) <= 8).all()
+    image = np.zeros((16, 16, 3))
+    image[half.rows, half.cols] = 1.0
+    mask = np.zeros((16, 16), bool)
+    mask[half.rows, half.cols] = True
+    assert fill_seams(image, mask).min() == 1.0

@@ -37,12 +37,13 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from ..body.template import vertex_normals
 from ..core.errors import ElicitError
 from ..core.io import atomic_write
 from ..data.motions import Motion, load_motion
 from ..model.avatar import Avatar, sample_grid
 from ..model.field import grid_points
-from .texture import DEFAULT_BAKE, Bake, bake_texture, uv_atlas, vertex_normals
+from .texture import DEFAULT_BAKE, Bake, bake_texture, uv_atlas
 
 MIN_COMPONENT = 0.02  # keep mesh components with at least this share of the largest one's faces
 SURFACE_DENSITY = 0.45  # marching-cubes level, density per voxel of the avatar's grid

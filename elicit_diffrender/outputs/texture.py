@@ -113,16 +113,6 @@ def rasterize_uv(uvs: np.ndarray, faces: np.ndarray, size: int) -> TexelSamples:
     return TexelSamples(rows[inside], cols[inside], face[inside], bary[inside])
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals of a mesh whose faces wind counter-clockwise seen from outside."""
-    tri = vertices[faces]
-    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_normals)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-
-
 @torch.no_grad()
 def surface_colors(avatar: Avatar, points: np.ndarray, normals: np.ndarray, bake: Bake = DEFAULT_BAKE) -> np.ndarray:
     """(N, 3) sRGB colours in [0, 1] of canonical surface ``points`` with outward unit ``normals`` (see the
