@@ -50,13 +50,14 @@ SIDES = (("front", 0.0), ("left", 90.0), ("back", 180.0), ("right", 270.0))
 
 
 def posed_vertices(avatar, vertices: np.ndarray, joints: np.ndarray, weights: np.ndarray, frame) -> np.ndarray:
-    """glTF skinning of canonical ``vertices``: ``v' = sum_j w_j B_j(t) B_j(rest)^-1 v`` (what the GLB encodes)."""
-    bones = avatar.bone_transforms(*frame).detach().cpu().double().numpy()
-    rest = avatar.canonical_bones.detach().cpu().double().numpy()
-    skin = bones @ np.linalg.inv(rest)  # (B, 4, 4)
-    homog = np.concatenate([vertices, np.ones((len(vertices), 1))], 1)
-    per = np.einsum("vkij,vj->vki", skin[joints.astype(np.int64)], homog)[..., :3]
-    return (weights[..., None] * per).sum(1)
+    """The skinning the GLB encodes, ``v' = sum_j w_j B_j(t) B_j(rest)^-1 v``: the avatar's forward LBS."""
+    from elicit_diffrender.model.skinning import forward_lbs
+
+    bones = avatar.bone_transforms(*frame).detach().cpu()
+    skin = bones @ torch.linalg.inv(avatar.canonical_bones.detach().cpu())
+    v = torch.as_tensor(vertices, dtype=torch.float32)
+    idx, w = torch.as_tensor(joints.astype(np.int64)), torch.as_tensor(weights, dtype=torch.float32)
+    return forward_lbs(v, idx, w, skin.float()).numpy().astype(np.float64)
 
 
 def side_cameras(points: np.ndarray, size: int) -> list:
@@ -90,10 +91,6 @@ def contact_sheet(shots: list[tuple[str, int, np.ndarray]], rows: list[str]) -> 
     return np.concatenate(columns, 1)
 
 
-def srgb(linear: np.ndarray) -> np.ndarray:
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.maximum(linear, 0) ** (1 / 2.4) - 0.055)
-
-
 def main() -> int:
     from elicit_diffrender.apps.benchtools import SCAN_CREDITS, machine_info, markdown_table, write_report
     from elicit_diffrender.apps.demo import DEMO_MOTION, run_demo
@@ -101,7 +98,7 @@ def main() -> int:
     from elicit_diffrender.data.motions import builtin_motion
     from elicit_diffrender.model.load import load_avatar
     from elicit_diffrender.outputs.evaluate import psnr
-    from elicit_diffrender.outputs.export import canonical_mesh, export_glb, textured_mesh
+    from elicit_diffrender.outputs.export import canonical_mesh, export_glb, linear_to_srgb, textured_mesh
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", nargs="*", default=[], metavar="NAME=RUN", help="more avatars: a name and a run folder")
@@ -141,9 +138,9 @@ def main() -> int:
             volume_cams = side_cameras(posed, args.size)
             volume = [avatar.render_pose(cam, *frame) for cam in volume_cams]
             for variant, mesh in meshes.items():
-                verts = posed_vertices(avatar, mesh.vertices.astype(np.float64), mesh.joints, mesh.weights, frame)
+                verts = posed_vertices(avatar, mesh.vertices, mesh.joints, mesh.weights, frame)
                 if mesh.texture is None:
-                    look = MeshAppearance(vertex_colors=srgb(mesh.colors))
+                    look = MeshAppearance(vertex_colors=linear_to_srgb(mesh.colors))
                 else:
                     look = MeshAppearance(uvs=mesh.uvs, texture=mesh.texture.astype(np.float32) / 255)
                 out = MeshRenderer(mesh.faces, look).render(verts, volume_cams, ("color", "alpha"), spp=args.spp)

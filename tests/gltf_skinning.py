@@ -99,4 +99,5 @@ def silhouette(camera, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """glTF's linear vertex colours to sRGB, written here rather than taken from the exporter, which it checks."""
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.maximum(c, 0) ** (1 / 2.4) - 0.055)

@@ -52,11 +52,11 @@ MIN_FACE_AREA = 1e-10  # square metres; smaller triangles are dropped
 MERGE_DIGITS = 5  # vertices equal to 10 micrometres are one
 
 
+DEFAULT_TEXTURE_SIZE = 1024
+
+
 class ExportError(ElicitError):
     """The avatar cannot be exported (nothing opaque, a motion that does not fit the body)."""
-
-
-DEFAULT_TEXTURE_SIZE = 1024
 
 
 @dataclass
@@ -76,7 +76,6 @@ def textured_mesh(
     avatar: Avatar, mesh: AvatarMesh, size: int = DEFAULT_TEXTURE_SIZE, bake: Bake = DEFAULT_BAKE
 ) -> AvatarMesh:
     """``mesh`` charted into a UV atlas, with a ``size``-square texture baked from ``avatar`` (see :mod:`.texture`)."""
-
     atlas = uv_atlas(mesh.vertices, mesh.faces, size)
     keep = atlas.vertex_map
     normals = vertex_normals(mesh.vertices.astype(np.float64), mesh.faces)[keep]
@@ -152,6 +151,11 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """sRGB-encoded values in [0, 1] (the photos' and the renders' colours) to linear ones (glTF's ``COLOR_0``)."""
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`srgb_to_linear`: linear values in [0, 1] to sRGB-encoded ones."""
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.maximum(c, 0) ** (1 / 2.4) - 0.055)
 
 
 def local_transforms(world: np.ndarray, parents: list[int]) -> np.ndarray:
