@@ -239,6 +239,27 @@ def start_ray(address: str | None, stage_dir: Path) -> None:
         signal.signal(signal.SIGTERM, on_sigterm)
 
 
+def job_task(cpus_per_fit: int):
+    """:func:`run_job` as a Ray task (Ray started) that asks for ``cpus_per_fit`` CPUs and the memory of one fit."""
+    import ray
+
+    memory = min(FIT_MEMORY, int(ray.cluster_resources().get("memory", FIT_MEMORY)))
+    return ray.remote(run_job).options(num_cpus=cpus_per_fit, memory=memory, max_retries=1)
+
+
+def finish_task(ref, job_dir: Path) -> dict:
+    """The record of a job whose task ended; a worker that died (killed, out of memory) fails its job here."""
+    import ray
+
+    try:
+        ray.get(ref)
+    except ray.exceptions.RayError as exc:
+        record = read_record(job_dir) | {"status": "failed", "error": error_line(exc)}
+        record.pop("input_stamp", None)
+        write_json(job_dir / JOB_FILE, record)
+    return read_record(job_dir)
+
+
 def job_row(job: Job, job_dir: Path, out: Path) -> dict:
     """A job's line in the summary: its record, and links (relative to ``out``) to what exists."""
     record = read_record(job_dir)
@@ -325,10 +346,8 @@ def run_batch(
         with tempfile.TemporaryDirectory() as stage:
             start_ray(address, Path(stage))
             try:
-                resources = ray.cluster_resources()
-                slots = max(1, int(resources.get("CPU", 1) // cpus_per_fit))
-                memory = min(FIT_MEMORY, int(resources.get("memory", FIT_MEMORY)))
-                task = ray.remote(run_job).options(num_cpus=cpus_per_fit, memory=memory, max_retries=1)
+                slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_fit))
+                task = job_task(cpus_per_fit)
                 pending = {task.remote(job, out / job.name, steps, config, render_size): job for job in todo}
                 show(bar, rows, min(len(pending), slots))
                 while pending:
@@ -337,12 +356,7 @@ def run_batch(
                         continue
                     (ref,) = ready
                     job = pending.pop(ref)
-                    try:
-                        ray.get(ref)
-                    except ray.exceptions.RayError as exc:  # the worker died (killed, out of memory)
-                        record = read_record(out / job.name) | {"status": "failed", "error": error_line(exc)}
-                        record.pop("input_stamp", None)
-                        write_json(out / job.name / JOB_FILE, record)
+                    finish_task(ref, out / job.name)
                     rows[job.name] = job_row(job, out / job.name, out)
                     show(bar, rows, min(len(pending), slots))
                     bar.update(1)

@@ -258,3 +258,77 @@ def elicit_command(code: Path) -> list[str]:
 
     layered = (code / "elicit_diffrender" / "apps" / "cli.py").is_file()
     return [sys.executable, "-P", "-m", "elicit_diffrender.apps.cli" if layered else "elicit_diffrender.cli"]
+
+
+# ---- ``elicit app`` in a browser (its test and its benchmark) ---------------------------------------------------
+def start_app(cmd: list[str], url: str, log: Path, timeout: float = 180.0) -> subprocess.Popen:
+    """Start ``elicit app`` (``cmd``) with its output in ``log`` and wait until ``url`` answers."""
+    import urllib.request
+
+    with open(log, "w") as stream:
+        server = subprocess.Popen(cmd, stdout=stream, stderr=subprocess.STDOUT)
+    deadline = time.time() + timeout
+    while True:
+        try:
+            urllib.request.urlopen(url, timeout=2).read()
+            return server
+        except OSError:
+            if server.poll() is not None or time.time() > deadline:
+                server.kill()
+                raise RuntimeError(f"elicit app did not start: {log.read_text()[-2000:]}") from None
+            time.sleep(1)
+
+
+def chromium_page(playwright, viewport: tuple[int, int] = (1400, 1300)):
+    """A page in the system's Chromium (software WebGL), for Playwright (which downloads no browser here)."""
+    import shutil
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        raise RuntimeError("chromium is missing: run scripts/setup.sh (it installs Debian's chromium)")
+    args = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    launched = playwright.chromium.launch(executable_path=browser, args=args)
+    return launched.new_page(viewport={"width": viewport[0], "height": viewport[1]}, accept_downloads=True)
+
+
+def app_job_in_page(page, url: str, photo: Path, mask: Path | None, timeout: float = 900.0) -> dict:
+    """Upload a photo (and its mask) on the app's page, start the job and follow its progress bar to the end;
+    returns the bar's fractions as they changed, the last phase, the status line and the seconds from upload."""
+    t0 = time.perf_counter()
+    page.goto(url)
+    page.locator("#photos input[type=file]").set_input_files(str(photo))
+    if mask is not None:
+        page.locator("#masks input[type=file]").set_input_files(str(mask))
+        page.locator(f"#masks td.filename[aria-label='{mask.name}']").wait_for()
+    page.locator(f"#photos td.filename[aria-label='{photo.name}']").wait_for()
+    page.locator("#start").click()
+    fractions: list[float] = []
+    phase = ""
+    while time.perf_counter() - t0 < timeout and phase not in ("done", "failed", "not started"):
+        bar = page.locator("#job-progress")
+        fraction, phase = float(bar.get_attribute("data-fraction")), bar.get_attribute("data-phase")
+        if not fractions or fraction != fractions[-1]:
+            fractions.append(fraction)
+        time.sleep(0.5)
+    return {"fractions": fractions, "phase": phase, "seconds": time.perf_counter() - t0}
+
+
+def viewer_coverage(page, shot: Path, timeout: float = 120.0) -> float:
+    """Wait until the app's 3D viewer draws something in the middle of its canvas; the share of pixels there that
+    differ from the background (0 if nothing shows within ``timeout``). Saves the canvas to ``shot``."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from .webapp import VIEWER_BACKGROUND
+
+    background = np.round(255 * np.array(VIEWER_BACKGROUND[:3]))
+    canvas = page.locator("#viewer canvas")
+    canvas.wait_for(timeout=timeout * 1000)
+    deadline, coverage = time.time() + timeout, 0.0
+    while time.time() < deadline and coverage < 0.05:
+        image = iio.imread(canvas.screenshot(path=str(shot)))[..., :3].astype(int)
+        h, w = image.shape[:2]
+        centre = image[h // 4 : 3 * h // 4, w // 3 : 2 * w // 3]
+        coverage = float((np.abs(centre - background).max(-1) > 30).mean())
+        time.sleep(0.5)
+    return coverage

@@ -129,6 +129,14 @@ def _batch(args: argparse.Namespace) -> None:
         )
 
 
+def _app(args: argparse.Namespace) -> None:
+    from .webapp import serve
+
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"elicit app: serving on {args.host}: anyone who reaches this address can run jobs", file=sys.stderr)
+    serve(args.out, args.host, args.port, args.preset, args.set, args.address, args.cpus_per_fit, args.share)
+
+
 def _eval(args: argparse.Namespace) -> None:
     from ..data.subject import load_subject
     from ..outputs.evaluate import evaluate_run
@@ -333,6 +341,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="a folder of photos shows one person: one multi-photo job per folder (default: a job per photo)",
     )
     b.set_defaults(func=_batch)
+
+    a = sub.add_parser("app", help="a local web page: photos in, progress, the avatar in a 3D viewer, downloads")
+    a.add_argument("--host", default="127.0.0.1", help="address to bind (default: this machine only)")
+    a.add_argument("--port", type=int_between(1, 65535), default=7860)
+    a.add_argument("--out", type=Path, default=Path("elicit-app"), help="folder of the job folders")
+    a.add_argument("--preset", default="cpu-fast", choices=sorted(PRESETS), help="the page's default preset")
+    a.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="a fit config key applied to every job"
+    )
+    a.add_argument(
+        "--address", default=None, help="a Ray cluster (auto, HOST:PORT or ray://HOST:PORT); default: local Ray"
+    )
+    a.add_argument(
+        "--cpus-per-fit",
+        type=int_between(1, 1024),
+        default=None,
+        help="CPUs each job asks for (default: all of this machine's, so jobs run one at a time; 1 on a cluster)",
+    )
+    a.add_argument("--share", action="store_true", help="also make a public gradio.live link (off by default)")
+    a.set_defaults(func=_app)
 
     e = sub.add_parser("eval", help="novel-view and novel-pose metrics of a fitted avatar against a subject")
     e.add_argument("run", type=Path)

@@ -17,7 +17,7 @@ from ..model.avatar import AVATAR_FILE, LEGACY_FILE
 from .baseline import fit_baseline
 from .checkpoint import CHECKPOINT, FitError
 from .config import FitConfig
-from .trainer import Trainer
+from .trainer import PROGRESS_FILE, Trainer
 
 
 def setup_logging(run_dir: Path) -> None:
@@ -34,7 +34,7 @@ def setup_logging(run_dir: Path) -> None:
 
 
 RESULTS = (CHECKPOINT, AVATAR_FILE, LEGACY_FILE, "run.json")  # what marks a folder as holding a fit
-LEFTOVERS = ("log.txt", "previews")  # what a fit writes besides
+LEFTOVERS = ("log.txt", "previews", PROGRESS_FILE)  # what a fit writes besides
 SAFETENSORS_TEMP = re.compile(r"\.tmp[A-Za-z0-9]{6}")  # what safetensors writes before renaming it into place
 LOCK_FILE = ".lock"  # held (flock) by the fit writing the folder, and holding its process id
 

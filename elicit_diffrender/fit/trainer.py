@@ -30,6 +30,7 @@ from .views import FitViews
 log = logging.getLogger("elicit.fit")
 ADAM = {"betas": (0.9, 0.99), "eps": 1e-8, "fused": True}  # fused: one pass over each grid per step
 PREVIEW_SIZE = 160
+PROGRESS_FILE = "progress.json"  # the stage and step last logged, for a page or tool that watches the fit
 
 
 @dataclass
@@ -271,6 +272,7 @@ class Trainer:
                 if means is not None:
                     self.stats.losses[f"stage{stage}"] = means
                     bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
+                    write_json(self.run_dir / PROGRESS_FILE, {"stage": stage, "step": self.step, "steps": steps})
                 if self.step % cfg.guard_every == 0 or done:
                     self.check()
                 if self.step % cfg.preview_every == 0 or done:
