@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from urllib.parse import urlparse
 
+import httpx
 import imageio.v2 as imageio
 import pytest
 from test_export import validate_glb
@@ -14,6 +15,8 @@ from test_fit import TINY as FIT_TINY  # noqa: I001 - the tiny fit settings are 
 
 from elicit_diffrender.apps.benchtools import app_job_in_page, chromium_page, start_app, viewer_coverage
 from elicit_diffrender.apps.webapp import (
+    MAX_UPLOAD_MB,
+    PHASES,
     AppError,
     copy_uploads,
     finished_jobs,
@@ -113,6 +116,11 @@ def test_make_avatar_through_gradio_client(app, photo, tmp_path):
     assert imageio.imread(sheet).shape[1] > imageio.imread(sheet).shape[0]  # five tiles side by side
     # Every finished job is listed for reopening (this one, and the browser test's if it ran first).
     assert len(finished_jobs(out)) >= 1
+    # Uploads above the limit are refused by the server itself.
+    big = tmp_path / "big.png"
+    big.write_bytes(bytes(MAX_UPLOAD_MB * 2**20 + 1))
+    with big.open("rb") as stream:
+        assert httpx.post(f"{url}gradio_api/upload", files={"files": stream}, timeout=60).status_code == 413
     fake = tmp_path / "empty.png"
     fake.write_bytes(b"")
     with pytest.raises(Exception, match="empty.png"):
@@ -126,11 +134,12 @@ def test_job_progress_follows_the_files_a_job_writes(tmp_path):
     write_json(job / "job.json", {"status": "running"})
     assert job_progress(job) == (0.0, "prepare")
     (job / "run").mkdir()
-    assert job_progress(job) == (pytest.approx(0.1), "fit set-up")
+    assert job_progress(job) == (pytest.approx(PHASES["prepare"]), "fit set-up")
     write_json(job / "run" / PROGRESS_FILE, {"stage": 2, "step": 50, "steps": 100})
-    assert job_progress(job) == (pytest.approx(0.55), "stage 2")
+    before_stage_2 = PHASES["prepare"] + PHASES["fit set-up"] + PHASES["stage 1"]
+    assert job_progress(job) == (pytest.approx(before_stage_2 + 0.5 * PHASES["stage 2"]), "stage 2")
     (job / "run" / "avatar.safetensors").write_bytes(b"x")
-    assert job_progress(job) == (pytest.approx(0.8), "render")
+    assert job_progress(job) == (pytest.approx(before_stage_2 + PHASES["stage 2"]), "render")
     (job / "avatar.glb").write_bytes(b"x")
     assert job_progress(job) == (1.0, "done")
     zipped = run_zip(job)

@@ -40,8 +40,8 @@ from .batch import JOB_FILE, PHOTO_SUFFIXES, STEPS, Job, finish_task, job_task, 
 MAX_UPLOAD_MB = 25  # per file
 RENDER_SIZE = 256  # pixels of the turntable and contact sheet (as ``elicit batch``)
 POLL_S = 1.0  # seconds between looks at a running job's folder
-# Shares of a job's time, for the progress bar (a cpu-fast fit of a 512-pixel photo on 2 cores)
-PHASES = {"prepare": 0.10, "fit set-up": 0.10, "stage 1": 0.10, "stage 2": 0.50, "render": 0.15, "export": 0.05}
+# Shares of a job's time, for the progress bar (a cpu-fast job on the demo photo on 2 cores, bench_app.py)
+PHASES = {"prepare": 0.20, "fit set-up": 0.07, "stage 1": 0.03, "stage 2": 0.45, "render": 0.20, "export": 0.05}
 ZIP_FILE = "run.zip"
 VIEWER_BACKGROUND = (0.13, 0.13, 0.13, 1.0)  # RGBA of the 3D viewer's canvas
 
