@@ -6,8 +6,8 @@ nothing set:
 1. the app: ``elicit app`` on a free port, driven by Playwright in the system's Chromium; the clock runs from the
    upload to the 3D viewer showing the avatar (progress phases recorded on the way);
 2. the command line: ``elicit prepare PHOTO --mask MASK`` then ``elicit fit`` (the same seed, the default one),
-   twice, since ``prepare``'s body fit is not bit-reproducible (Dr.Jit scatters its silhouette gradients from
-   many threads), and ``elicit fit`` on the app's own prepared subject (the fit is reproducible).
+   twice, since ``prepare``'s body fit is not bit-reproducible (measured; the likely cause is its Mitsuba
+   silhouettes on Dr.Jit's thread pool), and ``elicit fit`` on the app's own prepared subject (the fit is).
 
 The avatars are compared tensor by tensor and evaluated with ``elicit eval --align`` against the demo subject.
 Writes ``docs/benchmarks/app.{json,md}`` and ``app_viewer.png`` (the viewer's canvas at the end).
@@ -88,8 +88,8 @@ def main() -> int:
     (app_job,) = [d for d in jobs.iterdir() if (d / "job.json").is_file()]
     record = json.loads((app_job / "job.json").read_text())
 
-    # 2. The command line, twice (``prepare``'s body fit is not bit-reproducible: Dr.Jit scatters the silhouette
-    # gradients from many threads), and ``elicit fit`` on the app's own prepared subject.
+    # 2. The command line, twice (``prepare``'s body fit is not bit-reproducible), and ``elicit fit`` on the
+    # app's own prepared subject.
     runs, cli_seconds = {"app": app_job / "run"}, []
     for name in ("command line A", "command line B"):
         t0 = time.perf_counter()
