@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import socket
 import sys
 import time
 from pathlib import Path
@@ -30,12 +29,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def main() -> int:
     from playwright.sync_api import sync_playwright
     from safetensors.numpy import load_file
@@ -43,6 +36,7 @@ def main() -> int:
     from elicit_diffrender.apps.benchtools import (
         app_job_in_page,
         chromium_page,
+        free_port,
         machine_info,
         markdown_table,
         run,

@@ -2,7 +2,6 @@
 through ``gradio_client``, and the job bookkeeping the page reads."""
 
 import os
-import socket
 import sys
 from pathlib import Path
 from urllib.parse import urlparse
@@ -13,7 +12,7 @@ import pytest
 from test_export import validate_glb
 from test_fit import TINY as FIT_TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
-from elicit_diffrender.apps.benchtools import app_job_in_page, chromium_page, start_app, viewer_coverage
+from elicit_diffrender.apps.benchtools import app_job_in_page, chromium_page, free_port, start_app, viewer_coverage
 from elicit_diffrender.apps.webapp import (
     MAX_UPLOAD_MB,
     PHASES,
@@ -32,12 +31,6 @@ from elicit_diffrender.inputs.synth import synthesize
 from elicit_diffrender.outputs.viewer import glb_problem
 
 TINY = [*FIT_TINY, "init_steps=30", "steps=60", "preview_every=20"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import pytest
 import trimesh
 from gltf_skinning import linear_to_srgb, posed_mesh, silhouette, surface_colors
 
+from elicit_diffrender.apps.benchtools import chromium_page
 from elicit_diffrender.apps.cli import main
 from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
 from elicit_diffrender.data.rigs import place_ring
@@ -200,13 +201,8 @@ class PageShots:
     def __init__(self, page: Path) -> None:
         from playwright.sync_api import sync_playwright
 
-        browser = shutil.which("chromium") or shutil.which("chromium-browser")
-        if browser is None:
-            pytest.fail("chromium is missing: run scripts/setup.sh (it installs Debian's chromium)")
         self.playwright = sync_playwright().start()
-        args = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
-        self.browser = self.playwright.chromium.launch(executable_path=browser, args=args)
-        self.page = self.browser.new_page(viewport={"width": 320, "height": 320})
+        self.page = chromium_page(self.playwright, (320, 320))
         self.page.goto(page.as_uri())
         self.page.wait_for_function("document.title === 'avatar: loaded' && window.viewerFrames > 2", timeout=120_000)
 
@@ -215,7 +211,7 @@ class PageShots:
         return np.asarray(imageio.imread(path))[..., :3].astype(np.int16)
 
     def close(self) -> None:
-        self.browser.close()
+        self.page.context.browser.close()
         self.playwright.stop()
 
 

@@ -261,6 +261,15 @@ def elicit_command(code: Path) -> list[str]:
 
 
 # ---- ``elicit app`` in a browser (its test and its benchmark) ---------------------------------------------------
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def start_app(cmd: list[str], url: str, log: Path, timeout: float = 180.0) -> subprocess.Popen:
     """Start ``elicit app`` (``cmd``) with its output in ``log`` and wait until ``url`` answers."""
     import urllib.request

@@ -131,21 +131,25 @@ def run_zip(job_dir: Path) -> Path:
     return path
 
 
+def _existing(path: Path | None) -> str | None:
+    return str(path) if path is not None and path.is_file() else None
+
+
+def live_images(job_dir: Path) -> dict[str, str | None]:
+    """What a running job shows so far: the prepare overlay and the fit's newest preview (None until written)."""
+    return {"overlay": _existing(job_dir / "subject" / "overlay.png"), "preview": _existing(latest_preview(job_dir))}
+
+
 def results(job_dir: Path) -> dict[str, str | list[str] | None]:
-    """A job's files that the page shows (None where a step did not write one)."""
-
-    def existing(path: Path) -> str | None:
-        return str(path) if path.is_file() else None
-
+    """A job's files that the page shows (None where a step did not write one); zips its run folder for download."""
     downloads = [job_dir / "avatar.glb", job_dir / "run" / AVATAR_FILE]
     if (job_dir / "run" / AVATAR_FILE).is_file():
         downloads.append(run_zip(job_dir))
     return {
-        "overlay": existing(job_dir / "subject" / "overlay.png"),
-        "preview": existing(latest_preview(job_dir) or job_dir / "none"),
-        "glb": existing(job_dir / "avatar.glb"),
-        "video": existing(job_dir / "turntable.mp4"),
-        "sheet": existing(job_dir / "contact_sheet.png"),
+        **live_images(job_dir),
+        "glb": _existing(job_dir / "avatar.glb"),
+        "video": _existing(job_dir / "turntable.mp4"),
+        "sheet": _existing(job_dir / "contact_sheet.png"),
         "downloads": [str(p) for p in downloads if p.is_file()],
     }
 
@@ -271,7 +275,7 @@ def build_page(runner: JobRunner, default_preset: str):
                 yield {status_box: f"job `{job_dir.name}` done in {time.perf_counter() - t0:.0f} s"}
                 return
             update = {bar: progress_html(fraction, phase)}
-            files = results(job_dir) if phase not in ("prepare", "waiting for a free worker") else {}
+            files = live_images(job_dir) if phase not in ("prepare", "waiting for a free worker") else {}
             for key, component in (("overlay", overlay), ("preview", preview)):
                 if files.get(key) and files[key] != last.get(key):
                     update[component] = last[key] = files[key]
