@@ -69,7 +69,7 @@ def total_variation_kernels(dtype):
         density: wp.array3d(dtype=dtype),
         color: wp.array3d(dtype=vec3),
         inv_pairs: vec3,
-        g_tv: dtype,
+        g_tv: wp.array(dtype=dtype),
         grad_density: wp.array3d(dtype=dtype),
         grad_color: wp.array3d(dtype=vec3),
     ):
@@ -79,9 +79,10 @@ def total_variation_kernels(dtype):
         nz = density.shape[2]
         i = row // ny
         j = row - i * ny
-        kx = dtype(2.0) * g_tv * inv_pairs[0]
-        ky = dtype(2.0) * g_tv * inv_pairs[1]
-        kz = dtype(2.0) * g_tv * inv_pairs[2]
+        g = g_tv[0]  # the upstream gradient, read on the device
+        kx = dtype(2.0) * g * inv_pairs[0]
+        ky = dtype(2.0) * g * inv_pairs[1]
+        kz = dtype(2.0) * g * inv_pairs[2]
         for k in range(nz):
             x = density[i, j, k]
             c = color[i, j, k]

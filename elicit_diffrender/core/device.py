@@ -13,6 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 import warp as wp
 
+from .host_reads import on_host
+
 # Set before anything can initialise Warp: the optional kernel cache location.
 if os.environ.get("ELICIT_WARP_CACHE"):
     wp.config.kernel_cache_dir = os.environ["ELICIT_WARP_CACHE"]
@@ -98,10 +100,19 @@ def warp_scalar(dtype: torch.dtype):
     raise TypeError(f"only float32 and float64 are supported, got {dtype}")
 
 
+def host_box(box: torch.Tensor) -> tuple[list[float], list[float]]:
+    """A (2, 3) box's corners as Python floats (float64 arithmetic without small-tensor overheads). Boxes are kept
+    on the host (``CanonicalField.box_host``, the observation spaces), so this waits for no device; a box on a
+    device costs a host sync, which :func:`~elicit_diffrender.core.host_reads.count_host_reads` counts."""
+    with on_host():
+        lo, hi = box.detach().double().tolist()
+    return lo, hi
+
+
 def grid_frame(grid, box: torch.Tensor, shape: tuple[int, ...]):
     """The ``GridFrame`` struct (of ``grid = grid_funcs(dtype)``) locating a node-aligned grid of
     ``shape`` over ``box`` (2, 3)."""
-    lo, hi = box.double().tolist()  # Python floats: float64 arithmetic without small-tensor overheads
+    lo, hi = host_box(box)
     scale = [(n - 1) / (b - a) for n, a, b in zip(shape, lo, hi, strict=True)]
     return grid.make_frame(lo, scale, tuple(shape))
 

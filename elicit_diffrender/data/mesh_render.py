@@ -154,7 +154,7 @@ class MeshRenderer:
                 "irradiance": {"type": "rgb", "value": 1.6},
             }
         img = np.array(mi.render(mi.load_dict(scene), spp=1 if exact else spp))
-        return np.stack([img[:, k * width : (k + 1) * width] for k in range(len(cameras))])
+        return img.reshape(height, len(cameras), width, -1).transpose(1, 0, 2, 3)  # the film's tiles, as a view
 
     def render(
         self, vertices: np.ndarray, cameras: Sequence[Camera], channels: Sequence[str], spp: int = 8

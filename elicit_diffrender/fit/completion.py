@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from ..body import PART_NAMES
 from ..core.cameras import Camera
-from ..model.field import CanonicalField, grid_points, nearest
+from ..model.field import CanonicalField, grid_axes, nearest
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
@@ -99,6 +99,7 @@ class MirrorCompletion:
     rule_counts: dict[str, int]  # how many cells each rule gave a source
     unseen: int  # unseen cells near the body
     colors: torch.Tensor | None = None  # (N, 3) fixed photo colours (the guarded rule; NaN: none); None: the grid's
+    all_fixed: bool = False  # every cell has a fixed photo colour (no NaN in ``colors``)
     _target: torch.Tensor | None = None
     _key: int = -1
     _blur: torch.Tensor | None = None  # (N, cells) sparse: the blur's trilinear weights of every colour cell
@@ -126,14 +127,22 @@ class MirrorCompletion:
         it the gains are 1. ``colors`` (V, 3) are the photo's colours at the seen vertices (NaN elsewhere),
         ``facing`` (V,) the cosine between each vertex's normal and the way to the input camera; ``rule`` is
         ``"mirror"`` (:func:`mirror_sources`) or ``"guarded"`` (the mirror, with :func:`guard_details`)."""
-        pts = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
         sdf = sdf.reshape(-1)
+        # Beyond EXACT_VOXELS outside the body ``sdf`` only bounds the distance from below: the nearest-vertex
+        # query that finds each cell's owner also gives the distance that decides the room.
         room = sdf < margin if garment is None else (sdf < margin) | garment
         near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & room)[0]
+        axes = [a.numpy() for a in grid_axes(field.box.double(), field.shape)]
+        pts = np.stack([axes[a][i] for a, i in enumerate(np.unravel_index(near, field.shape))], 1)  # of ``near``
         tree = cKDTree(canonical)
-        _, idx = nearest(tree, pts[near])
+        dist, idx = nearest(tree, pts, within=max(margin, INSIDE_VOXELS * field.voxel_size))
+        far = np.nonzero(np.isinf(dist))[0]  # only a garment's cells lie farther out; find their owners too
+        if far.size:
+            dist[far], idx[far] = nearest(tree, pts[far])
+        keep = (sdf[near] < 0) | (dist < margin) | (False if garment is None else garment[near])
+        near, idx, pts = near[keep], idx[keep], pts[keep]
         hidden = ~seen[idx]
-        cells, p, owner = near[hidden], pts[near[hidden]], idx[hidden]
+        cells, p, owner = near[hidden], pts[hidden], idx[hidden]
         source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
         color = None
         if rule == "guarded":
@@ -152,6 +161,7 @@ class MirrorCompletion:
             counts,
             int(cells.size),
             None if color is None else torch.as_tensor(color[has], dtype=torch.float32, device=device),
+            color is not None and not np.isnan(color[has][:, 0]).any(),
         )
 
     def __len__(self) -> int:
@@ -192,7 +202,7 @@ class MirrorCompletion:
     def targets(self, field: CanonicalField) -> torch.Tensor:
         """(N, 3) the relit colour of every cell's source: its fixed photo colour where it has one, else the
         grid's, blurred."""
-        if self.colors is not None and not torch.isnan(self.colors[:, 0]).any():
+        if self.colors is not None and self.all_fixed:
             return (self.colors * self.gains[:, None]).clamp(0.0, 1.0)
         logits = torch.sparse.mm(self.blur_matrix(field), field.color.detach().reshape(-1, 3))
         live = torch.sigmoid(logits)

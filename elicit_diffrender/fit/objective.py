@@ -21,6 +21,7 @@ import torch
 
 from ..body import BodyModel
 from ..body.template import vertex_normals
+from ..core.host_reads import on_host
 from ..model.encoders import FALLBACK_NAME, EncoderError, load_encoder
 from ..model.field import CanonicalField
 from ..model.losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
@@ -168,7 +169,7 @@ class Objective:
         """Reconstruct a patch of a template-textured body render (random background)."""
         rng, prior, poses = self.streams.sampling, self.views.prior, self.views.poses[1]
         pose = poses[int(rng.integers(len(poses)))]
-        row, ci = prior.rows[pose], int(rng.integers(len(self.views.ring)))
+        row, ci = prior.texture_rows[pose], int(rng.integers(len(self.views.ring)))
         size = min(self.cfg.crop_size, self.cfg.label_size)
         alpha = prior.alpha[row, ci].astype(np.float32) / 255.0
         x0, y0 = random_patch(rng, alpha > 0.5, size)
@@ -222,7 +223,8 @@ class Objective:
         if self.on("silhouette"):
             terms["silhouette"] = silhouette_loss(out["alpha"][0], mask, soft=self.cfg.soft_silhouette)
         if self.on("edge"):
-            dist = self._tensor(edge_distance(mask_host.numpy() > 0.5))
+            with on_host():  # the crop of the host's labels
+                dist = self._tensor(edge_distance(mask_host.numpy() > 0.5))
             terms["edge"] = edge_loss(out["alpha"], mask[None], dist[None])
         if self.on("opacity"):
             terms["opacity"] = opacity_entropy(out["alpha"])

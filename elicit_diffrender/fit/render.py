@@ -44,6 +44,7 @@ class PoseRenderer:
         self._spaces: dict[int, tuple] = {}
         self._baked: dict[int, BakedWarp] = {}
         self._space_key = -1
+        self.refresh(0)
 
     def bones(self, pose: int) -> torch.Tensor:
         """(B, 4, 4) bone transforms of a training pose, with the learned correction on the input pose."""
@@ -54,11 +55,20 @@ class PoseRenderer:
         return self.avatar.motion_weights.logits.requires_grad or pose in self._refined
 
     def refresh(self, step: int) -> None:
-        """Drop the cached spaces of poses whose warp is learned, once every ``SPACE_REFRESH`` steps."""
+        """Build the space (and baked warp) of every training pose not built yet, and rebuild those whose warp is
+        learned, once every ``SPACE_REFRESH`` steps: all at once, so that the reads a build needs (the box, the
+        occupied cells) fall on that step and on no other."""
         key = step // SPACE_REFRESH
         if key != self._space_key:
             self._space_key = key
             self._spaces = {p: s for p, s in self._spaces.items() if not self._moving(p)}
+            for pose in self._bones:
+                self.space(pose)
+                self.baked(pose)
+
+    def invalidate(self) -> None:
+        """Rebuild the learned poses' spaces at the next :meth:`refresh` (the avatar was loaded from a file)."""
+        self._space_key = -1
 
     def space(self, pose: int) -> tuple:
         if pose not in self._spaces:

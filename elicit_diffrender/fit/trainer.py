@@ -30,6 +30,7 @@ from .views import FitViews
 log = logging.getLogger("elicit.fit")
 ADAM = {"betas": (0.9, 0.99), "eps": 1e-8, "fused": True}  # fused: one pass over each grid per step
 PREVIEW_SIZE = 160
+NONFINITE = "nonfinite steps"  # the LossMeter's count of steps whose loss was not finite
 PROGRESS_FILE = "progress.json"  # the stage and step last logged, for a page or tool that watches the fit
 
 
@@ -46,24 +47,32 @@ def _named(name: str, reason: str) -> str:
 
 class LossMeter:
     """Sums each term's detached value on the device and reads the means out every ``every`` steps, so
-    that a step never waits for the device just to log."""
+    that a step never waits for the device just to log. Steps whose loss was not finite are left out of the
+    means and counted (``NONFINITE`` in the read-out)."""
 
     def __init__(self, every: int) -> None:
         self.every, self.sums, self.count = every, {}, 0
 
-    def add(self, terms: Terms) -> dict[str, float] | None:
-        """Add one step's terms; every ``every`` steps, the means since the last read-out."""
+    def add(self, terms: Terms, skipped: torch.Tensor) -> dict[str, float] | None:
+        """Add one step's terms (``skipped``: a bool tensor, its loss was not finite); every ``every`` steps, the
+        means since the last read-out."""
         for name, value in terms.items():
-            self.sums[name] = self.sums.get(name, 0.0) + value.detach()
+            self.sums[name] = self.sums.get(name, 0.0) + torch.where(skipped, 0.0, value.detach())
+        self.sums[NONFINITE] = self.sums.get(NONFINITE, 0.0) + skipped.float()
         self.count += 1
         return self.read() if self.count >= self.every else None
 
     def read(self) -> dict[str, float] | None:
+        """The means since the last read-out (one host read), and the count of non-finite steps."""
         if self.count == 0:
             return None
-        means = {name: float(total) / self.count for name, total in self.sums.items()}
+        names = list(self.sums)
+        values = torch.stack([torch.as_tensor(self.sums[n], dtype=torch.float64) for n in names]).tolist()
+        totals = dict(zip(names, values, strict=True))
+        bad = totals.pop(NONFINITE)
+        means = {name: total / max(self.count - bad, 1.0) for name, total in totals.items()}
         self.sums, self.count = {}, 0
-        return means
+        return {**means, NONFINITE: bad}
 
 
 class Trainer:
@@ -173,6 +182,7 @@ class Trainer:
             self.streams.load_state(state["streams"])
             self.stats = RunStats(**state["stats"])
             self.objective.skipped_references = int(state["skipped_references"])
+            self.renderer.invalidate()
             if self.objective.completion is not None:
                 self.objective.completion.load_state(state.get("completion", {}))
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
@@ -258,21 +268,28 @@ class Trainer:
                     continue
                 loss = self.objective.total(terms)
                 self.opt.zero_grad(set_to_none=True)
-                if not torch.isfinite(loss):
-                    self.check()
-                    continue
+                # A non-finite loss skips its update on the device (Adam's ``found_inf``), with no branch on its
+                # value; the log read-out counts such steps and runs the guard.
+                skipped = ~torch.isfinite(loss)
+                self.opt.found_inf = skipped.float()
                 self.objective.backward(loss)
                 self.opt.step()
                 self.step += 1
                 bar.update(1)
                 done = self.step == steps
-                means = meter.add(terms)
+                means = meter.add(terms, skipped)
                 if done:
                     means = meter.read() or means
                 if means is not None:
+                    nonfinite = int(means.pop(NONFINITE))
                     self.stats.losses[f"stage{stage}"] = means
                     bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
                     write_json(self.run_dir / PROGRESS_FILE, {"stage": stage, "step": self.step, "steps": steps})
+                    if nonfinite:
+                        log.warning(
+                            "stage %d: %d steps to %d had a non-finite loss; skipped", stage, nonfinite, self.step
+                        )
+                        self.check()
                 if self.step % cfg.guard_every == 0 or done:
                     self.check()
                 if self.step % cfg.preview_every == 0 or done:

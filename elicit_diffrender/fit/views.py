@@ -70,28 +70,40 @@ def training_poses(subject: Subject, step: int, input_only: bool, observed: list
 
 @dataclass
 class PriorViews:
-    """Body-prior renders of the training poses from every ring camera (stage 1 targets, stage 2 crops)."""
+    """Body-prior renders of the training poses from every ring camera: part labels of every training pose (stage 2
+    crops), template colour and opacity of stage 1's poses only (its targets)."""
 
-    rows: dict[int, int]  # pose -> row of the arrays below
-    color: np.ndarray  # (P, C, H, W, 3) uint8 template colour
-    alpha: np.ndarray  # (P, C, H, W) uint8
+    rows: dict[int, int]  # pose -> row of labels and yaws
     labels: np.ndarray  # (P, C, H, W) int8 body parts, -1 background
     yaws: np.ndarray  # (P, C) body-relative yaw of each camera, degrees
+    texture_rows: dict[int, int]  # stage 1's poses -> row of color and alpha
+    color: np.ndarray  # (T, C, H, W, 3) uint8 template colour
+    alpha: np.ndarray  # (T, C, H, W) uint8
 
     @classmethod
-    def render(cls, subject: Subject, poses: list[int], ring: list[Camera], renderer: MeshRenderer) -> PriorViews:
+    def render(
+        cls, subject: Subject, poses: list[int], textured: list[int], ring: list[Camera], renderer: MeshRenderer
+    ) -> PriorViews:
+        """Labels of ``poses`` and, for those among ``textured``, colour and opacity (one Mitsuba launch per pose
+        and kind of channel)."""
         body = subject.body
         colors, alphas, labels, yaws = [], [], [], []
         for pose in tqdm(poses, desc="body-prior renders", unit="pose", leave=False):
             posed = body.pose(*subject.motion.frame(pose))
-            out = renderer.render(posed.vertices, ring, ("color", "alpha", "labels"), spp=4)
-            colors.append((np.clip(out["color"], 0, 1) * 255 + 0.5).astype(np.uint8))
-            alphas.append((out["alpha"] * 255 + 0.5).astype(np.uint8))
+            channels = ("color", "alpha", "labels") if pose in textured else ("labels",)
+            out = renderer.render(posed.vertices, ring, channels, spp=4)
+            if pose in textured:
+                colors.append((np.clip(out["color"], 0, 1) * 255 + 0.5).astype(np.uint8))
+                alphas.append((out["alpha"] * 255 + 0.5).astype(np.uint8))
             labels.append(out["labels"].astype(np.int8))
             rot = body_rotation(body, posed.bone_transforms)
             yaws.append([body_yaw(c, rot) for c in ring])
         rows = {pose: i for i, pose in enumerate(poses)}
-        return cls(rows, np.stack(colors), np.stack(alphas), np.stack(labels), np.array(yaws))
+        texture_rows = {pose: i for i, pose in enumerate(p for p in poses if p in textured)}
+        size = (len(ring), ring[0].height, ring[0].width)
+        color = np.stack(colors) if colors else np.zeros((0, *size, 3), np.uint8)
+        alpha = np.stack(alphas) if alphas else np.zeros((0, *size), np.uint8)
+        return cls(rows, np.stack(labels), np.array(yaws), texture_rows, color, alpha)
 
 
 @dataclass
@@ -211,5 +223,6 @@ class FitViews:
         }
         ring = place_ring(subject, cfg.ring_cameras, cfg.label_size)
         needed = list(dict.fromkeys(poses[1] + poses[2]))  # a reference photo's crops read its own labels
-        prior = PriorViews.render(subject, needed, ring, renderer)
+        textured = poses[1] if cfg.body_prior else []  # without the body prior no stage 1 reads them
+        prior = PriorViews.render(subject, needed, textured, ring, renderer)
         return cls(observed, references, ring, prior, poses)

@@ -245,16 +245,17 @@ class Avatar(nn.Module):
         posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
         pad = margin + max(cell, f.voxel_size)
         box = torch.stack([posed.min(0).values - pad, posed.max(0).values + pad])
+        host = box.cpu()  # renders read the box on the host (kernel arguments)
         if not skipping:
-            return box, None
-        shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (box[1] - box[0]))
+            return host, None
+        shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (host[1] - host[0]))
         size = torch.tensor(shape, device=dev)
         idx = ((posed - box[0]) / (box[1] - box[0]) * size).long()
         idx = torch.minimum(idx.clamp(min=0), size - 1)
         occ = torch.zeros(shape, device=dev)
         occ[idx[:, 0], idx[:, 1], idx[:, 2]] = 1.0
         occ = F.max_pool3d(occ[None, None], 3, 1, 1)[0, 0]
-        return box, occ.to(torch.uint8)
+        return host, occ.to(torch.uint8)
 
     @torch.no_grad()
     def bake_warp(self, bones: torch.Tensor, box: torch.Tensor, cell: float, chunk: int = 1 << 18) -> torch.Tensor:
@@ -279,7 +280,7 @@ class Avatar(nn.Module):
         """The per-bone inverse warp: canonical points and the summed bone weights (before :meth:`foreground`)."""
         weights = self.motion_weights() if self.motion_weights.logits.requires_grad else self.motion_weights().detach()
         return inverse_lbs(
-            points, self.obs_to_canonical(bones), weights, self.motion_weights.box, sharpness=self.sharpness,
+            points, self.obs_to_canonical(bones), weights, self.motion_weights.box_host, sharpness=self.sharpness,
             gate=self.gate,
         )  # fmt: skip
 
@@ -317,7 +318,7 @@ class Avatar(nn.Module):
             samples,
             f.density,
             f.color if "rgb" in outputs else None,
-            f.box,
+            f.box_host,
             positions=x_c,
             fg=fg,
             outputs=outputs,

@@ -16,6 +16,8 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import nn
 
+from ..core.host_reads import on_host
+
 EMPTY_DENSITY = -6.0  # softplus(-6) = 0.0025 per cell: transparent but still trainable
 
 
@@ -24,24 +26,96 @@ def grid_shape(box: torch.Tensor, voxel: float) -> tuple[int, int, int]:
     return tuple(max(2, math.ceil(e / voxel) + 1) for e in ext)
 
 
+def grid_axes(box: torch.Tensor, shape: tuple[int, ...]) -> list[torch.Tensor]:
+    """The node coordinates along each axis (float64)."""
+    return [torch.linspace(float(box[0, a]), float(box[1, a]), shape[a], dtype=torch.float64) for a in range(3)]
+
+
 def grid_points(box: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     """World positions of every node, (X, Y, Z, 3)."""
-    axes = [torch.linspace(float(box[0, a]), float(box[1, a]), shape[a], dtype=torch.float64) for a in range(3)]
-    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+    return torch.stack(torch.meshgrid(*grid_axes(box, shape), indexing="ij"), -1)
 
 
-def nearest(tree: cKDTree, points: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """``tree.query(points, k)`` on the CPUs this process is given (distances and indices)."""
+def nearest(tree: cKDTree, points: np.ndarray, k: int = 1, within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(points, k)`` on the CPUs this process is given (distances and indices); a neighbour farther
+    than ``within`` is not looked for (distance ``inf``, index ``tree.n``)."""
     from ..core.device import cpus_given
 
-    return tree.query(points, k=k, workers=cpus_given())
+    return tree.query(points, k=k, workers=cpus_given(), distance_upper_bound=within)
 
 
-def signed_distance(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, k: int = 4) -> np.ndarray:
-    """Approximate signed distance to a closed mesh: distance to the nearest vertices, signed by their normals."""
-    dist, idx = nearest(cKDTree(vertices), points, k)
+def signed_distance(
+    points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, k: int = 4, tree: cKDTree | None = None
+) -> np.ndarray:
+    """Approximate signed distance to a closed mesh: distance to the nearest vertices, signed by their normals
+    (``tree``: a ``cKDTree`` of ``vertices``, if one is at hand)."""
+    dist, idx = nearest(cKDTree(vertices) if tree is None else tree, points, k)
     sign = np.sign(np.einsum("pkc,pkc->pk", points[:, None] - vertices[idx], normals[idx]).mean(1))
     return dist[:, 0] * np.where(sign == 0, 1.0, sign)
+
+
+# CanonicalField.body_distance is exact within this many voxels of the body: its readers compare it with one voxel
+# (the initial density's smooth step, clothing's sparsity) or read it inside the body (the completion's band)
+EXACT_VOXELS = 2.0
+
+
+def _level_nodes(n: int, stride: int) -> np.ndarray:
+    """Node indices of one axis at ``stride``: every ``stride``-th, and the last, so that every node lies in a cell."""
+    return np.unique(np.r_[np.arange(0, n, stride), n - 1])
+
+
+def grid_signed_distance(
+    box: torch.Tensor, shape: tuple[int, int, int], vertices: np.ndarray, normals: np.ndarray, exact_within: float
+) -> np.ndarray:
+    """(X, Y, Z) :func:`signed_distance` at the nodes of a grid, coarse to fine, computed only where it is needed.
+
+    The distance to the nearest vertex ``d`` is 1-Lipschitz: inside a cell of the coarser level whose corners
+    hold ``d_c``, every node has ``d >= max_c(d_c) - diag`` (``diag``: the cell's diagonal). Where that bound
+    reaches ``exact_within`` and every corner lies outside the body, the node takes the bound, positive; every
+    other node is computed. Levels go from stride 8 to 1. So every value inside the body and every value below
+    ``exact_within`` is :func:`signed_distance`'s; a value at or above ``exact_within`` is outside, with a
+    magnitude at most the true distance. (Only outside, where the vertex-normal vote is smooth, does a node take
+    its corners' sign; inside it, the vote can flip, so the inside is always computed.)
+    """
+    axes = [a.numpy() for a in grid_axes(box, shape)]
+    tree = cKDTree(vertices)
+    out = np.full(shape, np.nan)
+
+    def exact(sel: tuple[np.ndarray, ...]) -> np.ndarray:
+        pts = np.stack([axes[a][sel[a]] for a in range(3)], 1)
+        return signed_distance(pts, vertices, normals, tree=tree)
+
+    stride = 8
+    prev = [_level_nodes(n, stride) for n in shape]
+    grid = np.ix_(*prev)
+    ii = np.meshgrid(*prev, indexing="ij")
+    out[grid] = exact(tuple(i.ravel() for i in ii)).reshape(out[grid].shape)
+    while stride > 1:
+        stride //= 2
+        nodes = [_level_nodes(n, stride) for n in shape]
+        coarse = out[np.ix_(*prev)]
+        d, pos = np.abs(coarse), coarse > 0
+        # per coarse cell: the largest corner distance and whether every corner is outside
+        dmax, all_pos = d[:-1, :-1, :-1], pos[:-1, :-1, :-1]
+        for corner in range(1, 8):
+            sl = tuple(slice(1, None) if corner >> a & 1 else slice(None, -1) for a in range(3))
+            dmax, all_pos = np.maximum(dmax, d[sl]), all_pos & pos[sl]
+        cell = [
+            np.clip(np.searchsorted(p, n, side="right") - 1, 0, len(p) - 2) for p, n in zip(prev, nodes, strict=True)
+        ]
+        width = [np.diff(axes[a][prev[a]]).max() for a in range(3)]
+        lo = dmax[np.ix_(*cell)] - float(np.sqrt(sum(w * w for w in width)))
+        certain = (lo >= exact_within) & all_pos[np.ix_(*cell)]
+        grid = np.ix_(*nodes)
+        level = out[grid]
+        known = ~np.isnan(level)
+        level = np.where(known, level, np.where(certain, lo, np.nan))
+        todo = np.nonzero(np.isnan(level))
+        if todo[0].size:
+            level[todo] = exact(tuple(nodes[a][todo[a]] for a in range(3)))
+        out[grid] = level
+        prev = nodes
+    return out
 
 
 def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray, k: int = 8) -> np.ndarray:
@@ -95,6 +169,11 @@ class CanonicalField(nn.Module):
         self.color = nn.Parameter(torch.zeros(*shape, 3))
         occ_shape = grid_shape(self.box, occupancy_cell) if occupancy_cell > 0 else (1, 1, 1)
         self.register_buffer("occupancy", torch.ones(occ_shape, dtype=torch.uint8))
+        self.box_host = self.box.clone()  # the box on the host, for kernel launches that take it by value
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self.box_host = self.box.detach().cpu().clone()
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -105,9 +184,10 @@ class CanonicalField(nn.Module):
         return F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
 
     def body_distance(self, vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """(X, Y, Z) the signed distance of every node to the canonical body (:func:`signed_distance`)."""
-        pts = grid_points(self.box.double(), self.shape).reshape(-1, 3).numpy()
-        return signed_distance(pts, vertices, normals).reshape(self.shape)
+        """(X, Y, Z) the signed distance of every node to the canonical body, exact within ``EXACT_VOXELS`` voxels
+        of it and a bound with the right sign beyond (:func:`grid_signed_distance`)."""
+        exact_within = EXACT_VOXELS * self.voxel_size
+        return grid_signed_distance(self.box.double(), self.shape, vertices, normals, exact_within)
 
     def init_from_body(
         self, sdf: np.ndarray, vertices: np.ndarray, normals: np.ndarray, inside: float = 3.0, room: Room | None = None
@@ -145,7 +225,8 @@ class CanonicalField(nn.Module):
 
     def random_block(self, block: int = 40, generator: torch.Generator | None = None) -> tuple[slice, ...]:
         """A random ``block``^3 sub-grid, for cheap unbiased estimates of whole-grid regularisers."""
-        start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
+        with on_host():  # a CPU generator's draws
+            start = [int(torch.randint(0, max(1, n - block) + 1, (1,), generator=generator)) for n in self.shape]
         return tuple(slice(s, s + block) for s in start)
 
     def sparsity_loss(self, density: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
@@ -166,6 +247,11 @@ class MotionWeights(nn.Module):
         self.register_buffer("box", box.to(torch.float32).clone())
         self.n_bones = n_bones
         self.logits = nn.Parameter(torch.zeros(n_bones + 1, resolution, resolution, resolution))
+        self.box_host = self.box.clone()  # the box on the host, for kernel launches that take it by value
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self.box_host = self.box.detach().cpu().clone()
 
     def init_from_body(
         self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, room: Room, room_weight: float = 1.0

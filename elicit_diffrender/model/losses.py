@@ -19,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
+from ..core.host_reads import on_host
+
 
 def mse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return F.mse_loss(a, b)
@@ -94,7 +96,8 @@ def edge(x: torch.Tensor, size: int = 7) -> torch.Tensor:
 def edge_distance(mask: np.ndarray) -> np.ndarray:
     """sqrt of the distance transform to the mask's edge band (the one-way chamfer weights)."""
     m = torch.as_tensor(mask, dtype=torch.float32)
-    band = edge(m[None])[0].numpy() > 0
+    with on_host():
+        band = edge(m[None])[0].numpy() > 0
     return np.sqrt(ndimage.distance_transform_edt(~band)).astype(np.float32)
 
 

@@ -161,7 +161,7 @@ def inverse_lbs(
         raise ValueError(f"sharpness must be an integer in 1..{MAX_SHARPNESS}, got {sharpness}")
     if not gate >= 0:
         raise ValueError(f"gate must be >= 0 metres, got {gate}")
-    box = box.detach().cpu()
+    box = box.detach() if box.device.type == "cpu" else box.detach().cpu()
     return _InverseLBS.apply(
         points.contiguous(), rot, trans, weights.contiguous(), box, float(eps), int(sharpness), float(gate)
     )
@@ -180,7 +180,7 @@ def lookup_baked_warp(
     points = points.detach().contiguous()
     out_x = torch.empty_like(points)
     out_fg = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
-    frame = grid_frame(st.grid, box.detach().cpu(), table.shape[:3])
+    frame = grid_frame(st.grid, box, table.shape[:3])
     args = [to_warp(points, dtype=st.vec3), to_warp(table.contiguous(), dtype=k.vec4), frame]
     launch(k.kernel, points.shape[0], points.device, [*args, to_warp(out_x, dtype=st.vec3), to_warp(out_fg)])
     return out_x, out_fg

@@ -38,7 +38,8 @@ class _TotalVariation(torch.autograd.Function):
         vec3 = grid_funcs(warp_scalar(density.dtype)).vec3
         _, bwd = total_variation_kernels(warp_scalar(density.dtype))
         grad_density, grad_color = torch.empty_like(density), torch.empty_like(color)
-        args = [to_warp(density), to_warp(color, dtype=vec3), vec3(*_inverse_pairs(density.shape)), float(g_tv)]
+        args = [to_warp(density), to_warp(color, dtype=vec3), vec3(*_inverse_pairs(density.shape))]
+        args += [to_warp(g_tv.reshape(1).to(density.dtype).contiguous())]
         args += [to_warp(grad_density), to_warp(grad_color, dtype=vec3)]
         launch(bwd, density.shape[0] * density.shape[1], density.device, args)
         return grad_density, grad_color

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.device import grid_frame, launch, launch_parts, partial_sums, to_warp, warp_scalar
+from ..core.device import grid_frame, host_box, launch, launch_parts, partial_sums, to_warp, warp_scalar
 from ..kernels.raymarch import (
     ACT_RELU,
     ACT_SOFTPLUS,
@@ -93,11 +93,12 @@ def sample_rays(
         occ_t = torch.zeros((1, 1, 1), dtype=torch.uint8, device=device)
     else:
         occ_t = occupancy.to(device=device, dtype=torch.uint8).contiguous()
+    lo, hi = host_box(box)
     rays = [
         to_warp(origins.contiguous(), dtype=k.vec3),
         to_warp(dirs.contiguous(), dtype=k.vec3),
-        k.vec3(*box[0].tolist()),
-        k.vec3(*box[1].tolist()),
+        k.vec3(*lo),
+        k.vec3(*hi),
         n_samples,
         seed,
         to_warp(occ_t),
@@ -105,7 +106,7 @@ def sample_rays(
     baked_args = k.BakedWarp()
     if baked:
         baked_args.table = to_warp(warp.table.contiguous(), dtype=k.vec4)
-        baked_args.frame = grid_frame(k.grid, warp.box.detach().cpu(), warp.table.shape[:3])
+        baked_args.frame = grid_frame(k.grid, warp.box, warp.table.shape[:3])
     n_kept = n_rays * n_samples if baked else 0
     counts = torch.empty(n_rays, dtype=torch.int32, device=device)
     kept_t = torch.empty(n_rays * n_samples, dtype=dtype, device=device)
@@ -116,7 +117,7 @@ def sample_rays(
     launch(k.count, n_rays, device, [*rays, baked_args, to_warp(counts), *kept, to_warp(steps)])
     offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=device)
     torch.cumsum(counts, 0, out=offsets[1:])
-    total = int(offsets[-1].item())
+    total = int(offsets[-1].item())  # a step's one host sync: the sample count sizes the buffers below
     positions = torch.empty((total, 3), dtype=dtype, device=device)
     t_mid = torch.empty(total, dtype=dtype, device=device)
     deltas = torch.empty(total, dtype=dtype, device=device)
@@ -327,7 +328,7 @@ def composite(
         samples.offsets,
         samples.t_mid,
         samples.deltas if density_scale == 1.0 else samples.deltas * density_scale,
-        box.detach().cpu(),
+        box.detach() if box.device.type == "cpu" else box.detach().cpu(),
         ACTIVATIONS[activation],
         float(t_thresh),
         need_rgb,
