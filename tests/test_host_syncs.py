@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 from devices import DEVICE
+from test_fit import TINY as FIT_TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
 from elicit_diffrender.core.host_reads import count_host_reads, on_host
 from elicit_diffrender.data.subject import load_subject
@@ -14,16 +15,10 @@ from elicit_diffrender.inputs.synth import synthesize
 from elicit_diffrender.model.field import EXACT_VOXELS, CanonicalField, grid_points, signed_distance
 
 LOG_EVERY = 10
-TINY = [
+# test_fit's tiny fit, with 20 + 50 steps, a read-out every LOG_EVERY, and no previews or checkpoints in between
+TINY = FIT_TINY + [
     "init_steps=20",
     "steps=50",
-    "crop_size=32",
-    "label_size=96",
-    "voxel_size=0.03",
-    "samples_per_ray=24",
-    "ring_cameras=8",
-    "occupancy_cell=0.06",
-    "weight_grid=16",
     f"log_every={LOG_EVERY}",
     "guard_every=20",
     "preview_every=100000",

@@ -100,12 +100,19 @@ def warp_scalar(dtype: torch.dtype):
     raise TypeError(f"only float32 and float64 are supported, got {dtype}")
 
 
+def host_tensor(tensor: torch.Tensor) -> torch.Tensor:
+    """``tensor`` (detached) on the host: itself where it is there already; a tensor on a device is copied, a host
+    sync that :func:`~elicit_diffrender.core.host_reads.count_host_reads` counts."""
+    with on_host():
+        return tensor.detach().cpu()
+
+
 def host_box(box: torch.Tensor) -> tuple[list[float], list[float]]:
     """A (2, 3) box's corners as Python floats (float64 arithmetic without small-tensor overheads). Boxes are kept
-    on the host (``CanonicalField.box_host``, the observation spaces), so this waits for no device; a box on a
-    device costs a host sync, which :func:`~elicit_diffrender.core.host_reads.count_host_reads` counts."""
+    on the host (``BoxedVolume.box_host``, the observation spaces), so this waits for no device (see
+    :func:`host_tensor`)."""
     with on_host():
-        lo, hi = box.detach().double().tolist()
+        lo, hi = host_tensor(box).double().tolist()
     return lo, hi
 
 

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from ..body import PART_NAMES
 from ..core.cameras import Camera
-from ..model.field import CanonicalField, grid_axes, nearest
+from ..model.field import CanonicalField, grid_axes, nearest, node_points
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
@@ -133,7 +133,7 @@ class MirrorCompletion:
         room = sdf < margin if garment is None else (sdf < margin) | garment
         near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & room)[0]
         axes = [a.numpy() for a in grid_axes(field.box.double(), field.shape)]
-        pts = np.stack([axes[a][i] for a, i in enumerate(np.unravel_index(near, field.shape))], 1)  # of ``near``
+        pts = node_points(axes, np.unravel_index(near, field.shape))  # of ``near``
         tree = cKDTree(canonical)
         dist, idx = nearest(tree, pts, within=max(margin, INSIDE_VOXELS * field.voxel_size))
         far = np.nonzero(np.isinf(dist))[0]  # only a garment's cells lie farther out; find their owners too

@@ -31,6 +31,12 @@ def grid_axes(box: torch.Tensor, shape: tuple[int, ...]) -> list[torch.Tensor]:
     return [torch.linspace(float(box[0, a]), float(box[1, a]), shape[a], dtype=torch.float64) for a in range(3)]
 
 
+def node_points(axes: list[np.ndarray], index: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(N, 3) positions of the nodes at per-axis indices ``index`` of a grid whose axes are ``axes``
+    (:func:`grid_axes`), without building the whole grid."""
+    return np.stack([axes[a][index[a]] for a in range(3)], 1)
+
+
 def grid_points(box: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     """World positions of every node, (X, Y, Z, 3)."""
     return torch.stack(torch.meshgrid(*grid_axes(box, shape), indexing="ij"), -1)
@@ -81,15 +87,13 @@ def grid_signed_distance(
     tree = cKDTree(vertices)
     out = np.full(shape, np.nan)
 
-    def exact(sel: tuple[np.ndarray, ...]) -> np.ndarray:
-        pts = np.stack([axes[a][sel[a]] for a in range(3)], 1)
-        return signed_distance(pts, vertices, normals, tree=tree)
+    def exact(index: tuple[np.ndarray, ...]) -> np.ndarray:
+        return signed_distance(node_points(axes, index), vertices, normals, tree=tree)
 
     stride = 8
     prev = [_level_nodes(n, stride) for n in shape]
-    grid = np.ix_(*prev)
     ii = np.meshgrid(*prev, indexing="ij")
-    out[grid] = exact(tuple(i.ravel() for i in ii)).reshape(out[grid].shape)
+    out[np.ix_(*prev)] = exact(tuple(i.ravel() for i in ii)).reshape(ii[0].shape)
     while stride > 1:
         stride //= 2
         nodes = [_level_nodes(n, stride) for n in shape]
@@ -153,14 +157,28 @@ class Room:
         return out
 
 
-class CanonicalField(nn.Module):
+class BoxedVolume(nn.Module):
+    """A volume over a canonical ``box`` (2, 3), a buffer that travels with the module, and ``box_host``, its copy
+    on the host that kernel launches take by value (reading the buffer would wait for the device); the copy
+    follows a loaded state."""
+
+    def __init__(self, box: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("box", box.to(torch.float32).clone())
+        self.box_host = self.box.clone()
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self.box_host = self.box.detach().cpu().clone()
+
+
+class CanonicalField(BoxedVolume):
     """Density and colour on a grid over ``box`` with an occupancy grid for empty-space skipping."""
 
     def __init__(
         self, box: torch.Tensor, voxel_size: float, activation: str = "softplus", occupancy_cell: float = 0.04
     ) -> None:
-        super().__init__()
-        self.register_buffer("box", box.to(torch.float32).clone())
+        super().__init__(box)
         self.voxel_size = float(voxel_size)
         self.activation = activation
         self.occupancy_cell = float(occupancy_cell)
@@ -169,11 +187,6 @@ class CanonicalField(nn.Module):
         self.color = nn.Parameter(torch.zeros(*shape, 3))
         occ_shape = grid_shape(self.box, occupancy_cell) if occupancy_cell > 0 else (1, 1, 1)
         self.register_buffer("occupancy", torch.ones(occ_shape, dtype=torch.uint8))
-        self.box_host = self.box.clone()  # the box on the host, for kernel launches that take it by value
-
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        self.box_host = self.box.detach().cpu().clone()
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -239,19 +252,13 @@ class CanonicalField(nn.Module):
 ROOM_BLEND = 0.02  # metres outside the surface where the motion weights pass from the body's to the room's
 
 
-class MotionWeights(nn.Module):
+class MotionWeights(BoxedVolume):
     """Skinning weights over canonical space: softmax over (bones + background) logits on a grid."""
 
     def __init__(self, box: torch.Tensor, n_bones: int, resolution: int = 32) -> None:
-        super().__init__()
-        self.register_buffer("box", box.to(torch.float32).clone())
+        super().__init__(box)
         self.n_bones = n_bones
         self.logits = nn.Parameter(torch.zeros(n_bones + 1, resolution, resolution, resolution))
-        self.box_host = self.box.clone()  # the box on the host, for kernel launches that take it by value
-
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        self.box_host = self.box.detach().cpu().clone()
 
     def init_from_body(
         self, vertices: np.ndarray, normals: np.ndarray, weights: np.ndarray, room: Room, room_weight: float = 1.0

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.device import grid_frame, launch, launch_parts, partial_sums, to_warp, warp_scalar
+from ..core.device import grid_frame, host_tensor, launch, launch_parts, partial_sums, to_warp, warp_scalar
 from ..kernels.skinning import (
     baked_warp_lookup,
     forward_lbs_backward,
@@ -161,7 +161,7 @@ def inverse_lbs(
         raise ValueError(f"sharpness must be an integer in 1..{MAX_SHARPNESS}, got {sharpness}")
     if not gate >= 0:
         raise ValueError(f"gate must be >= 0 metres, got {gate}")
-    box = box.detach() if box.device.type == "cpu" else box.detach().cpu()
+    box = host_tensor(box)
     return _InverseLBS.apply(
         points.contiguous(), rot, trans, weights.contiguous(), box, float(eps), int(sharpness), float(gate)
     )

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.device import grid_frame, host_box, launch, launch_parts, partial_sums, to_warp, warp_scalar
+from ..core.device import grid_frame, host_box, host_tensor, launch, launch_parts, partial_sums, to_warp, warp_scalar
 from ..kernels.raymarch import (
     ACT_RELU,
     ACT_SOFTPLUS,
@@ -328,7 +328,7 @@ def composite(
         samples.offsets,
         samples.t_mid,
         samples.deltas if density_scale == 1.0 else samples.deltas * density_scale,
-        box.detach() if box.device.type == "cpu" else box.detach().cpu(),
+        host_tensor(box),
         ACTIVATIONS[activation],
         float(t_thresh),
         need_rgb,
