@@ -1,13 +1,11 @@
 """An avatar as an animated glTF binary (``.glb``): mesh, colours, skeleton, skin weights and a motion.
 
-* Geometry: marching cubes (scikit-image) of the canonical density times the motion weights'
-  foreground likelihood (density outside every bone's reach is not meshed) at ``SURFACE_DENSITY``: with
-  the renderer's ``alpha = fg (1 - exp(-sigma delta / voxel))`` a ray is half opaque after 1.5 voxels of
-  that density. Against the volume render's ``alpha > 0.5`` silhouette at three poses this level gave
-  IoU 0.93-0.97 on the fitted demo avatar and 0.92-0.96 on a small test fit (0.3: 0.89-0.96; 0.8:
-  0.89-0.98). Only components with at least ``MIN_COMPONENT`` of the largest one's faces are kept
-  (floaters go); ``faces`` decimates (quadric); vertices within 10 micrometres are merged and the
-  triangles left without area dropped.
+* Geometry: marching cubes (scikit-image) at level 1 of :func:`.surface.surface_field` of the canonical
+  density times the motion weights' foreground likelihood (density outside every bone's reach is not
+  meshed): the depth where an axis-aligned ray turns half opaque, plus low-density fuzz (hair) that
+  makes the volume's silhouette. Only components with at least ``MIN_COMPONENT`` of the largest one's
+  faces are kept (floaters go); ``faces`` decimates (quadric); vertices within 10 micrometres are merged
+  and the triangles left without area dropped.
 * Appearance (default): a UV atlas and a ``texture_size``-square texture baked from the radiance field
   (:mod:`.texture`), stored as a PNG in the GLB: one material whose ``baseColorTexture`` reads
   ``TEXCOORD_0``, linear filtering with mip-maps, clamped at the edges. Vertices on chart seams are
@@ -43,10 +41,10 @@ from ..core.io import atomic_write
 from ..data.motions import Motion, load_motion
 from ..model.avatar import Avatar, sample_grid
 from ..model.field import grid_points
+from .surface import surface_field
 from .texture import DEFAULT_BAKE, Bake, bake_texture, uv_atlas
 
 MIN_COMPONENT = 0.02  # keep mesh components with at least this share of the largest one's faces
-SURFACE_DENSITY = 0.45  # marching-cubes level, density per voxel of the avatar's grid
 MAX_JOINTS_PER_VERTEX = 4
 MIN_FACE_AREA = 1e-10  # square metres; smaller triangles are dropped
 MERGE_DIGITS = 5  # vertices equal to 10 micrometres are one
@@ -111,12 +109,12 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     with torch.no_grad():
         sigma = sample_grid(f.activated_density()[None].cpu(), f.box.cpu(), nodes)[:, 0]
         fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
-    volume = (sigma * avatar.foreground(fg)).reshape(shape).numpy()
-    level = SURFACE_DENSITY
-    if volume.max() <= level:
-        raise ExportError(f"the avatar has no opaque region to mesh (its density never reaches {level})")
+    volume = (sigma * avatar.foreground(fg)).reshape(shape).double().numpy()
     spacing = tuple(float(box[1, a] - box[0, a]) / (shape[a] - 1) for a in range(3))
-    verts, tris, _, _ = marching_cubes(volume, level=level, spacing=spacing)
+    field = surface_field(volume, spacing, float(f.voxel_size))
+    if field.max() <= 1.0:
+        raise ExportError("the avatar has no opaque region to mesh (no ray through it turns half opaque)")
+    verts, tris, _, _ = marching_cubes(field, level=1.0, spacing=spacing)
     mesh = trimesh.Trimesh(verts + box[0].numpy(), tris[:, ::-1], process=True)
     parts = mesh.split(only_watertight=False)
     if len(parts) > 1:
