@@ -1,4 +1,5 @@
-"""Shared fixtures: the Anny body (cached per session) and small synthetic SMPL-format model files."""
+"""Shared fixtures: the Anny body (cached per session), small synthetic SMPL-format model files, and the fit
+tests' tiny synthetic subject (one per test module)."""
 
 import pickle
 
@@ -6,6 +7,8 @@ import numpy as np
 import pytest
 
 from elicit_diffrender.body.smpl_model import SMPL_JOINTS
+from elicit_diffrender.data.subject import load_subject
+from elicit_diffrender.inputs.synth import synthesize
 
 # A T-pose skeleton in SMPL's joint order (metres, +y up, facing +z).
 SMPL_SKELETON = np.array([
@@ -59,3 +62,10 @@ def anny_body():
     from elicit_diffrender.body import load_body
 
     return load_body({"model": "anny"})
+
+
+@pytest.fixture(scope="module")
+def tiny_subject(tmp_path_factory):
+    """A small synthetic subject (seed 5, 96 px, 4 cameras) for the fit tests' tiny fits."""
+    root = synthesize(5, tmp_path_factory.mktemp("fit") / "s", size=96, spp=4, n_cameras=4, texture_size=256)
+    return load_subject(root)

@@ -18,7 +18,6 @@ from elicit_diffrender.fit.checkpoint import CHECKPOINT, FitError, read_checkpoi
 from elicit_diffrender.fit.config import ConfigError, make_config
 from elicit_diffrender.fit.trainer import Trainer
 from elicit_diffrender.fit.views import crop_image
-from elicit_diffrender.inputs.synth import synthesize
 from elicit_diffrender.model.avatar import Avatar, AvatarError
 from elicit_diffrender.model.load import load_avatar
 from elicit_diffrender.model.skinning import lookup_baked_warp
@@ -38,12 +37,6 @@ TINY = [
     "checkpoint_every=10",
     "weight_grid=16",
 ]
-
-
-@pytest.fixture(scope="module")
-def tiny_subject(tmp_path_factory):
-    root = synthesize(5, tmp_path_factory.mktemp("fit") / "s", size=96, spp=4, n_cameras=4, texture_size=256)
-    return load_subject(root)
 
 
 @pytest.fixture(scope="module")

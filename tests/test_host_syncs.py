@@ -8,10 +8,8 @@ from devices import DEVICE
 from test_fit import TINY as FIT_TINY  # noqa: I001 - the tiny fit settings are shared with the fit tests
 
 from elicit_diffrender.core.host_reads import count_host_reads, on_host
-from elicit_diffrender.data.subject import load_subject
 from elicit_diffrender.fit.config import make_config
 from elicit_diffrender.fit.trainer import Trainer
-from elicit_diffrender.inputs.synth import synthesize
 from elicit_diffrender.model.field import EXACT_VOXELS, CanonicalField, grid_points, signed_distance
 
 LOG_EVERY = 10
@@ -24,12 +22,6 @@ TINY = FIT_TINY + [
     "preview_every=100000",
     "checkpoint_every=100000",
 ]
-
-
-@pytest.fixture(scope="module")
-def subject(tmp_path_factory):
-    root = synthesize(5, tmp_path_factory.mktemp("syncs") / "s", size=96, spp=4, n_cameras=4, texture_size=256)
-    return load_subject(root)
 
 
 def reads_per_step(trainer: Trainer) -> list[tuple[int, int, dict]]:
@@ -60,8 +52,8 @@ def reads_per_step(trainer: Trainer) -> list[tuple[int, int, dict]]:
     [[], ["learn_motion_weights=true", "refine_input_pose=true"]],
     ids=["baked warp", "learned warp and input pose (paper)"],
 )
-def test_a_step_reads_the_device_once_outside_the_read_outs(tmp_path, subject, sets):
-    trainer = Trainer(subject, make_config("cpu-fast", None, TINY + sets), tmp_path / "run")
+def test_a_step_reads_the_device_once_outside_the_read_outs(tmp_path, tiny_subject, sets):
+    trainer = Trainer(tiny_subject, make_config("cpu-fast", None, TINY + sets), tmp_path / "run")
     per_step = reads_per_step(trainer)
     assert len(per_step) == 70
     # A step right after a read-out (the loss log every LOG_EVERY steps, and the guard and the spaces' rebuild,
@@ -89,8 +81,8 @@ def test_the_counter_sees_reads_and_branches_but_not_host_work():
     assert all(site.startswith("outside") for _, site in reads.sites)
 
 
-def test_a_nonfinite_loss_skips_its_update_and_is_counted(tmp_path, subject):
-    trainer = Trainer(subject, make_config("cpu-fast", None, TINY + ["init_steps=0", "steps=10"]), tmp_path / "r")
+def test_a_nonfinite_loss_skips_its_update_and_is_counted(tmp_path, tiny_subject):
+    trainer = Trainer(tiny_subject, make_config("cpu-fast", None, TINY + ["init_steps=0", "steps=10"]), tmp_path / "r")
     field, start, snapshot = trainer.avatar.field, trainer.start_stage_2, {}
 
     def started() -> None:
@@ -106,8 +98,8 @@ def test_a_nonfinite_loss_skips_its_update_and_is_counted(tmp_path, subject):
     assert trainer.step == 10 and torch.isfinite(trainer.avatar.field.density).all()
 
 
-def test_coarse_to_fine_distance_is_the_plain_one_where_it_is_read(subject):
-    body = subject.body
+def test_coarse_to_fine_distance_is_the_plain_one_where_it_is_read(tiny_subject):
+    body = tiny_subject.body
     canon = body.pose(body.canonical_pose())
     from elicit_diffrender.body.template import vertex_normals
 

@@ -44,14 +44,27 @@ LINE_DIRECTIONS = line_directions()
 
 
 def depth_from_outside(volume: np.ndarray, steps: tuple[float, float, float]) -> np.ndarray:
-    """(6, *shape) optical depth from each face of the grid to each node: ``cumsum(sigma) * step - sigma * step / 2``
-    along +x, -x, +y, -y, +z, -z; ``volume`` holds density per voxel, ``steps`` the node spacing in voxels."""
-    out = []
+    """Per node, the smallest optical depth from a face of the grid along +-x, +-y, +-z:
+    ``cumsum(sigma) * step - sigma * step / 2`` (midpoint rule); ``volume`` holds density per voxel, ``steps``
+    the node spacing in voxels."""
+    best = np.full(volume.shape, np.inf)
     for axis in range(3):
         half = 0.5 * volume * steps[axis]
-        out.append(np.cumsum(volume, axis=axis) * steps[axis] - half)
-        out.append(np.flip(np.cumsum(np.flip(volume, axis), axis=axis), axis) * steps[axis] - half)
-    return np.stack(out)
+        best = np.minimum(best, np.cumsum(volume, axis=axis) * steps[axis] - half)
+        best = np.minimum(best, np.flip(np.cumsum(np.flip(volume, axis), axis=axis), axis) * steps[axis] - half)
+    return best
+
+
+def bilinear_corners(fu: np.ndarray, fv: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The four (column, row, weight) corners of bilinear interpolation at continuous bin coordinates."""
+    iu, iv = np.floor(fu).astype(np.int64), np.floor(fv).astype(np.int64)
+    du, dv = fu - iu, fv - iv
+    return [
+        (iu, iv, (1 - du) * (1 - dv)),
+        (iu + 1, iv, du * (1 - dv)),
+        (iu, iv + 1, (1 - du) * dv),
+        (iu + 1, iv + 1, du * dv),
+    ]
 
 
 def line_depth(
@@ -65,9 +78,8 @@ def line_depth(
     spacing = np.asarray(spacing, dtype=np.float64)
     b = float(spacing.mean())
     occupied = np.nonzero(volume > 1e-4)
-    best = np.zeros(volume.shape)
     if not occupied[0].size:
-        return best
+        return np.zeros(volume.shape)
     mass = volume[occupied] * float(np.prod(spacing)) / (b * b * voxel)
     points = np.stack(occupied, 1) * spacing
     nodes = np.stack(np.meshgrid(*[np.arange(n) for n in volume.shape], indexing="ij"), -1).reshape(-1, 3) * spacing
@@ -80,24 +92,15 @@ def line_depth(
         pu, pv = points @ u_axis / b, points @ v_axis / b
         u0, v0 = math.floor(pu.min()) - 1, math.floor(pv.min()) - 1
         width, height = math.ceil(pu.max() - u0) + 3, math.ceil(pv.max() - v0) + 3
-        fu, fv = pu - u0, pv - v0
-        iu, iv = np.floor(fu).astype(np.int64), np.floor(fv).astype(np.int64)
-        du, dv = fu - iu, fv - iv
         image = np.zeros(width * height)
-        for ou, ov, w in ((0, 0, (1 - du) * (1 - dv)), (1, 0, du * (1 - dv)), (0, 1, (1 - du) * dv), (1, 1, du * dv)):
-            image += np.bincount((iu + ou) * height + iv + ov, weights=mass * w, minlength=width * height)
+        for iu, iv, w in bilinear_corners(pu - u0, pv - v0):
+            image += np.bincount(iu * height + iv, weights=mass * w, minlength=width * height)
         image = image.reshape(width, height)
         fu, fv = nodes @ u_axis / b - u0, nodes @ v_axis / b - v0
         inside = (fu >= 0) & (fv >= 0) & (fu < width - 1) & (fv < height - 1)
-        iu, iv = np.floor(fu[inside]).astype(np.int64), np.floor(fv[inside]).astype(np.int64)
-        du, dv = fu[inside] - iu, fv[inside] - iv
         read = np.zeros(len(nodes))
-        read[inside] = (
-            image[iu, iv] * (1 - du) * (1 - dv)
-            + image[iu + 1, iv] * du * (1 - dv)
-            + image[iu, iv + 1] * (1 - du) * dv
-            + image[iu + 1, iv + 1] * du * dv
-        )
+        for iu, iv, w in bilinear_corners(fu[inside], fv[inside]):
+            read[inside] += image[iu, iv] * w
         best = np.minimum(best, read)
     return best.reshape(volume.shape)
 
@@ -106,6 +109,6 @@ def surface_field(volume: np.ndarray, spacing: tuple[float, float, float], voxel
     """The field whose level 1 is the surface (see the module docstring): ``volume`` is density per voxel
     (foreground included) at nodes ``spacing`` metres apart, ``voxel`` the density's voxel in metres."""
     steps = tuple(float(s) / voxel for s in spacing)
-    median_depth = depth_from_outside(volume, steps).min(0) / HALF_OPAQUE
+    median_depth = depth_from_outside(volume, steps) / HALF_OPAQUE
     fuzz = np.minimum(volume / FUZZ_DENSITY, line_depth(volume, spacing, voxel, LINE_DIRECTIONS) / FUZZ_DEPTH)
     return np.maximum(median_depth, fuzz)
