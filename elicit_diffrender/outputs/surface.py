@@ -21,6 +21,7 @@ seated, man_in_suit), not on the benchmark's.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -55,16 +56,16 @@ def depth_from_outside(volume: np.ndarray, steps: tuple[float, float, float]) ->
     return best
 
 
-def bilinear_corners(fu: np.ndarray, fv: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The four (column, row, weight) corners of bilinear interpolation at continuous bin coordinates."""
+def bilinear_corners(fu: np.ndarray, fv: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The four (column, row, weight) corners of bilinear interpolation at continuous bin coordinates, one at
+    a time (a full grid's corners together would hold twelve arrays)."""
     iu, iv = np.floor(fu).astype(np.int64), np.floor(fv).astype(np.int64)
     du, dv = fu - iu, fv - iv
-    return [
-        (iu, iv, (1 - du) * (1 - dv)),
-        (iu + 1, iv, du * (1 - dv)),
-        (iu, iv + 1, (1 - du) * dv),
-        (iu + 1, iv + 1, du * dv),
-    ]
+    del fu, fv  # a whole grid's coordinates: not kept while the corners are used
+    yield iu, iv, (1 - du) * (1 - dv)
+    yield iu + 1, iv, du * (1 - dv)
+    yield iu, iv + 1, (1 - du) * dv
+    yield iu + 1, iv + 1, du * dv
 
 
 def line_depth(
@@ -98,10 +99,11 @@ def line_depth(
         image = image.reshape(width, height)
         fu, fv = nodes @ u_axis / b - u0, nodes @ v_axis / b - v0
         inside = (fu >= 0) & (fv >= 0) & (fu < width - 1) & (fv < height - 1)
-        read = np.zeros(len(nodes))
+        values = np.zeros(int(inside.sum()))
         for iu, iv, w in bilinear_corners(fu[inside], fv[inside]):
-            read[inside] += image[iu, iv] * w
-        best = np.minimum(best, read)
+            values += image[iu, iv] * w
+        best[inside] = np.minimum(best[inside], values)
+        best[~inside] = 0.0  # these nodes' lines miss the projected density
     return best.reshape(volume.shape)
 
 
