@@ -226,8 +226,8 @@ STANDING_2D = {11: (90, 100), 12: (110, 100), 13: (80, 150), 14: (120, 150), 23:
 
 def test_posture_priors_follow_what_the_photo_shows():
     """Knees held straight and the trunk upright only for a standing person; the arm-plane prior only for arms the
-    image shows at length."""
-    from elicit_diffrender.body.fitting import arms_in_image_plane, standing
+    image shows at length, and for a raised arm only once the keypoints have brought it up."""
+    from elicit_diffrender.body.fitting import arms_in_image_plane, arms_raised, standing
 
     assert standing(_landmarks(STANDING_2D))
     seated = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}  # thighs towards the camera
@@ -236,6 +236,12 @@ def test_posture_priors_follow_what_the_photo_shows():
     np.testing.assert_array_equal(arms_in_image_plane(_landmarks(STANDING_2D)), [1.0, 1.0])
     forward = {**STANDING_2D, 13: (88, 110)}  # the left upper arm seen end-on: 10 px of a 100 px torso
     np.testing.assert_array_equal(arms_in_image_plane(_landmarks(forward)), [0.0, 1.0])
+    np.testing.assert_array_equal(arms_raised(_landmarks(STANDING_2D)), [False, False])
+    raised = {**STANDING_2D, 13: (80, 55)}  # the left elbow above its shoulder (image y grows downwards)
+    np.testing.assert_array_equal(arms_raised(_landmarks(raised)), [True, False])
+    unseen = _landmarks(raised)
+    unseen[13, 2] = 0.1  # an elbow MediaPipe does not see is not taken for raised
+    np.testing.assert_array_equal(arms_raised(unseen), [False, False])
 
 
 def test_an_upright_trunk_takes_the_thighs_lean_and_keeps_its_own_sideways_tilt():

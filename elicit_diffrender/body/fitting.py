@@ -14,7 +14,8 @@ phenotype). MediaPipe's metric shins and arms are not used: on seven synthetic s
 lean 9-16 degrees away from the true ones, always with the ankles back; on six (seeds 1-3, 9-11) its
 upper arms are 6-36 degrees off and its forearms 8-56. An elbow is a hinge, so how far a forearm reaches
 towards the camera shows in its foreshortening in the image, and the hinge prior says to which side;
-the upper arms are held near the body's frontal plane (``ARM_PLANE_WEIGHT``). Priors keep the pose
+the upper arms are held near the body's frontal plane (``ARM_PLANE_WEIGHT``; an arm raised above the shoulder only
+in the silhouette stage, once its keypoints have brought it up). Priors keep the pose
 near rest (knees nearly straight, knees and elbows bending the right way) and the phenotype near
 average.
 """
@@ -44,6 +45,7 @@ TORSO_SMPL = (0, 1, 2, 12, 16, 17)
 SilhouetteRender = Callable[[torch.Tensor], torch.Tensor]
 SilhouetteFactory = Callable[[np.ndarray, int], SilhouetteRender]
 FIT_STEPS = 240  # keypoint steps, then as many with the point-to-mask silhouette (half each)
+START_YAWS = (0.0, np.pi)  # the body's turn about the vertical at the coarse stage's starts (0 faces the camera)
 RENDER_STEPS = 120  # steps on the differentiable silhouette
 RENDER_LR = 0.01  # Adam step size on the differentiable silhouette
 RENDER_WEIGHT = 12.0  # its weight against the keypoint and prior terms
@@ -205,16 +207,16 @@ class AnnyFit(torch.nn.Module):
         knees = (self.rotvecs[self.knees] ** 2).sum()
         return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend + self.knee_weight * knees
 
-    def arm_plane(self, heads: torch.Tensor) -> torch.Tensor:
-        """How far the upper arms leave the torso's frontal plane: the sum over the arms ``arms_in_plane`` holds of
-        the squared component of the shoulder -> elbow direction along the plane's normal (the shoulder line
-        crossed with the trunk, from the joint ``heads`` (J, 3))."""
+    def arm_plane(self, heads: torch.Tensor, which: torch.Tensor | None = None) -> torch.Tensor:
+        """How far the upper arms leave the torso's frontal plane: the sum over the arms ``arms_in_plane`` (or
+        ``which``, (2,) weights) holds of the squared component of the shoulder -> elbow direction along the plane's
+        normal (the shoulder line crossed with the trunk, from the joint ``heads`` (J, 3))."""
         left, right, hip_left, hip_right = heads[self.torso_joints]
         normal = torch.linalg.cross(left - right, (left + right) / 2 - (hip_left + hip_right) / 2)
         normal = normal / normal.norm().clamp(min=1e-9)
         arms = heads[self.arm_joints[:, 1]] - heads[self.arm_joints[:, 0]]
         arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
-        return (self.arms_in_plane * (arms @ normal) ** 2).sum()
+        return ((self.arms_in_plane if which is None else which) * (arms @ normal) ** 2).sum()
 
     def uprightness(self, heads: torch.Tensor) -> torch.Tensor:
         """The squared difference between how far the spine (pelvis to neck) and the thighs (knees to hips) point
@@ -403,6 +405,15 @@ def arms_in_image_plane(keypoints: np.ndarray | None) -> np.ndarray:
     return out
 
 
+def arms_raised(keypoints: np.ndarray) -> np.ndarray:
+    """(2,) bool for each arm (left, right) whose elbow the image shows above its shoulder (image y grows
+    downwards). Such an arm swings far from the rest pose while the fit follows its keypoints; the frontal-plane
+    prior holds it only once it is there, in the silhouette stage: held from the start, it left the raised left
+    arm of ``arms_raised`` (synthetic) at its side, its wrist 144 px from the keypoint."""
+    pairs = ((11, 13), (12, 14))
+    return np.array([bool(_visible(keypoints, (s, e)) and keypoints[e, 1] < keypoints[s, 1]) for s, e in pairs])
+
+
 def upright_trunk(trunk: torch.Tensor, thighs: list[torch.Tensor]) -> torch.Tensor:
     """MediaPipe's metric trunk direction (hips to shoulders; camera axes: x right, y down, z away) with its lean
     towards the camera replaced by its thighs' mean (each hip to knee, so taken reversed): a standing person's
@@ -453,9 +464,10 @@ def fit_anny_to_image(
     is_standing = standing(keypoints) if keypoints is not None else True
     hold_upright = False  # set below where MediaPipe's metric trunk leans away from its own thighs
     fit.knee_weight = KNEE_WEIGHT if is_standing else KNEE_WEIGHT_NOT_STANDING
+    arms_lowered = None  # the arms the frontal-plane prior holds from the start (``arms_raised``)
     if keypoints is not None:
         fit.arms_in_plane = torch.as_tensor(arms_in_image_plane(keypoints))
-    if keypoints is not None:
+        arms_lowered = fit.arms_in_plane * torch.as_tensor(~arms_raised(keypoints), dtype=torch.float64)
         goal = targets.keypoints[kp_ids]
         vis = (goal[:, 2] > 0.5).double()
         torso_rows = torch.tensor([kp_ids.index(k) for k in TORSO_KEYPOINTS])
@@ -510,7 +522,7 @@ def fit_anny_to_image(
     # Start: upright and facing the camera (or away), placed at the depth the torso's size implies.
     base = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # body +y up -> image up; body front -> camera
     best = None
-    for yaw in (0.0, np.pi):
+    for yaw in START_YAWS:
         with torch.no_grad():
             fit.rotvecs.zero_()
             fit.pheno.copy_(shape_logits)
@@ -547,14 +559,14 @@ def fit_anny_to_image(
                 verts, heads, rots = fit()
                 loss = float(kp_loss(verts, heads, rots) + WORLD_WEIGHT * world_loss(verts, heads, rots, TORSO_LINES))
         if best is None or loss < best[0]:
-            best = (loss, {k: v.detach().clone() for k, v in fit.state_dict().items()})
+            best = (loss, {k: v.detach().clone() for k, v in fit.state_dict().items()}, yaw)
     fit.load_state_dict(best[1])
 
     def fine(with_silhouette: bool):
         def loss():
             verts, heads, rots = fit()
             total = 1e-3 * fit.prior() + WORLD_WEIGHT * world_loss(verts, heads, rots)
-            total = total + ARM_PLANE_WEIGHT * fit.arm_plane(heads)
+            total = total + ARM_PLANE_WEIGHT * fit.arm_plane(heads, None if with_silhouette else arms_lowered)
             if hold_upright:
                 total = total + UPRIGHT_WEIGHT * fit.uprightness(heads)
             if keypoints is not None:
@@ -576,8 +588,10 @@ def fit_anny_to_image(
                   render_steps, RENDER_LR)  # fmt: skip
     with torch.no_grad():
         verts, heads, rots = fit()
-        report = {"standing": is_standing, "held_upright": hold_upright, "arms_in_plane": fit.arms_in_plane.tolist()}
+        report = {"standing": is_standing, "held_upright": hold_upright, "arms_in_plane": fit.arms_in_plane.tolist(),
+                  "start_yaw_deg": round(float(np.degrees(best[2])))}  # fmt: skip
         if keypoints is not None:
+            report["arms_raised"] = arms_raised(keypoints).tolist()
             uv = targets.project(model_keypoints(verts, heads, rots))
             err = (uv - goal[:, :2]).norm(dim=1)[vis > 0].numpy()
             report["keypoint_error_px"] = {
