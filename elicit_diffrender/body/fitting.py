@@ -467,7 +467,8 @@ def fit_anny_to_image(
     arms_lowered = None  # the arms the frontal-plane prior holds from the start (``arms_raised``)
     if keypoints is not None:
         fit.arms_in_plane = torch.as_tensor(arms_in_image_plane(keypoints))
-        arms_lowered = fit.arms_in_plane * torch.as_tensor(~arms_raised(keypoints), dtype=torch.float64)
+        raised = arms_raised(keypoints)
+        arms_lowered = fit.arms_in_plane * torch.as_tensor(~raised, dtype=torch.float64)
         goal = targets.keypoints[kp_ids]
         vis = (goal[:, 2] > 0.5).double()
         torso_rows = torch.tensor([kp_ids.index(k) for k in TORSO_KEYPOINTS])
@@ -591,7 +592,7 @@ def fit_anny_to_image(
         report = {"standing": is_standing, "held_upright": hold_upright, "arms_in_plane": fit.arms_in_plane.tolist(),
                   "start_yaw_deg": round(float(np.degrees(best[2])))}  # fmt: skip
         if keypoints is not None:
-            report["arms_raised"] = arms_raised(keypoints).tolist()
+            report["arms_raised"] = raised.tolist()
             uv = targets.project(model_keypoints(verts, heads, rots))
             err = (uv - goal[:, :2]).norm(dim=1)[vis > 0].numpy()
             report["keypoint_error_px"] = {

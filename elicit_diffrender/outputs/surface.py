@@ -27,7 +27,7 @@ import numpy as np
 
 HALF_OPAQUE = math.log(2.0)  # optical depth at which a ray is half opaque
 FUZZ_DENSITY = 0.2  # density per voxel below which matter is never meshed by itself
-FUZZ_DEPTH = 2 * math.log(2.0)  # a fuzz node's lines must all reach this optical depth (75% opaque)
+FUZZ_DEPTH = 2 * HALF_OPAQUE  # a fuzz node's lines must all reach this optical depth (75% opaque)
 
 
 def line_directions(horizontal: int = 8) -> np.ndarray:
