@@ -19,6 +19,13 @@ def _canonical(anny_body):
     return canon.vertices, vertex_normals(canon.vertices, anny_body.faces)
 
 
+def _field_around(verts, normals, voxel=0.03):
+    """A colour grid 10 cm round the body, and the body's signed distance on it."""
+    box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
+    field = CanonicalField(box, voxel)
+    return field, field.body_distance(verts, normals)
+
+
 def test_visibility_from_a_front_camera_sees_the_front_only(anny_body):
     verts, normals = _canonical(anny_body)
     centre = verts.mean(0)
@@ -190,9 +197,7 @@ def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the
     colors[head] = skin
     colors[head & ((verts[:, 1] > ear_y + 0.03) | (verts[:, 2] < ear_z))] = hair
     colors[~seen] = np.nan
-    box = torch.tensor(np.stack([verts.min(0) - 0.1, verts.max(0) + 0.1]), dtype=torch.float32)
-    field = CanonicalField(box, 0.03)
-    sdf = field.body_distance(verts, normals)
+    field, sdf = _field_around(verts, normals)
 
     def build(colors):
         return MirrorCompletion.build(
@@ -219,3 +224,63 @@ def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the
     colors[head & seen] = skin
     bald = build(colors)
     assert bald.rule_counts["hair"] == 0
+
+
+def _holding(anny_body, gap: float):
+    """The canonical body with both forearms moved to lie across the chest, ``gap`` metres in front of it."""
+    verts, normals = _canonical(anny_body)
+    parts = anny_body.vertex_parts()
+    torso = parts == PART_NAMES.index("torso")
+    chest_y = np.percentile(verts[torso, 1], 70)
+    front = verts[torso & (np.abs(verts[:, 1] - chest_y) < 0.03), 2].max()
+    held = verts.copy()
+    for name, side in (("left_forearm", 1.0), ("right_forearm", -1.0)):
+        arm = parts == PART_NAMES.index(name)
+        centre = verts[arm].mean(0)
+        held[arm] = verts[arm] - centre + [verts[torso, 0].mean() + 0.06 * side, chest_y, front + gap + 0.05]
+    return held, normals, parts, torso, chest_y
+
+
+def test_seen_torso_behind_forearms_held_in_front_is_no_source(anny_body):
+    """Forearms held out in front of the chest may hold a folder: the seen torso between and around them is no
+    mirror source, and the back cells that would copy it take the colour their band shows elsewhere; forearms
+    resting on the body hold nothing."""
+    from elicit_diffrender.fit.completion import HELD_REACH, within_held_reach
+
+    verts, normals, parts, torso, chest_y = _holding(anny_body, 0.15)
+    centre = verts[torso].mean(0)
+    cam = look_at(centre + np.array([0.0, 0.0, 3.0]), centre, np.array([0.0, 1.0, 0.0]), 300.0, 256, 256)
+    seen = normals[:, 2] > 0.0
+    held = within_held_reach(verts, parts, normals, cam, seen)
+    chest = torso & seen & (np.abs(verts[:, 1] - chest_y) < 0.03) & (np.abs(verts[:, 0] - centre[0]) < 0.05)
+    hips = torso & seen & (verts[:, 1] < chest_y - 0.1 - 2 * HELD_REACH)
+    assert chest.sum() > 10 and held[chest].all()
+    assert hips.sum() > 10 and not held[hips].any()
+    assert not held[~torso].any() and not held[~seen].any()
+    resting, *_ = _holding(anny_body, 0.0)
+    assert not within_held_reach(resting, parts, normals, cam, seen).any()
+
+    # A folder in the held zone, a blue top elsewhere: the back no longer copies the folder.
+    top, folder = (0.2, 0.3, 0.8), (0.8, 0.8, 0.7)
+    canon, _ = _canonical(anny_body)
+    colors = np.tile(top, (len(verts), 1))
+    colors[held] = folder
+    colors[~seen] = np.nan
+    field, sdf = _field_around(canon, normals)
+
+    def build(held):
+        return MirrorCompletion.build(
+            field, canon, normals, parts, seen, sdf, 0.05, colors=colors, facing=normals[:, 2], held=held
+        )
+
+    plain, guarded = build(None), build(held)
+    assert "held in front: band colour" not in plain.rule_counts and plain.colors is None
+    assert torch.equal(plain.cells, guarded.cells)
+    _, plain_source = cKDTree(canon).query(plain.sources.numpy())
+    copies_folder = held[plain_source]
+    assert copies_folder.sum() > 10 and guarded.rule_counts["held in front: band colour"] == copies_folder.sum()
+    fixed = guarded.colors.numpy()
+    np.testing.assert_allclose(fixed[copies_folder], np.tile(top, (copies_folder.sum(), 1)), atol=1e-6)
+    assert np.isnan(fixed[~copies_folder]).all()  # every other cell keeps its mirror source
+    _, source = cKDTree(canon).query(guarded.sources.numpy())
+    assert not held[source].any()

@@ -23,7 +23,9 @@ points ``BLUR_VOXELS`` away; the targets are detached and recomputed every ``REF
 seen side they copy changes slowly). No render, no encoder.
 
 A vertex is seen when it faces the input camera, projects inside the input mask and lies within
-``DEPTH_TOLERANCE`` of the depth of the body's own surface there.
+``DEPTH_TOLERANCE`` of the depth of the body's own surface there. A seen vertex is no source when it lies within
+the arms' reach in front of the body (:func:`within_held_reach`): what the photo shows there may be a folder, a
+phone or a bag the hands hold, which the back does not carry.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..body import PART_NAMES
 from ..core.cameras import Camera
@@ -66,6 +68,14 @@ HAIR_DARKER = 0.7
 HAIR_HUE = 0.05
 HAIR_SHARE = 0.3
 FACE_HALF_WIDTH = 0.045  # metres each side of the face's midline: eyes, nose and mouth, copied nowhere
+# What the hands may hold: a forearm (with its hand) whose points lie at least FRONT_GAP in front of the torso's
+# surface behind them in the image (HELD_SHARE of them or more) is held out in front; the image region they span
+# (both arms together), grown by HELD_REACH, may show a held object instead of the torso. TORSO_NEAR: how close
+# (metres, in the image) a torso point must project to count as behind a forearm point.
+FRONT_GAP = 0.08
+HELD_SHARE = 0.5
+HELD_REACH = 0.15
+TORSO_NEAR = 0.03
 
 
 def facing_cosine(vertices: np.ndarray, normals: np.ndarray, camera: Camera) -> np.ndarray:
@@ -89,6 +99,43 @@ def visible_vertices(
     d = depth[v, u]
     seen[inside] = person[v, u] & (d > 0) & (z[inside] <= d + DEPTH_TOLERANCE)
     return seen & facing
+
+
+def within_held_reach(
+    vertices: np.ndarray, vertex_parts: np.ndarray, normals: np.ndarray, camera: Camera, seen: np.ndarray
+) -> np.ndarray:
+    """(V,) bool: the seen torso vertices (posed ``vertices`` with ``normals``) that may lie behind something the
+    hands hold: they project into the image region spanned by the forearms held out in front of the torso, grown by
+    ``HELD_REACH``. None when no forearm is held out.
+
+    A forearm point is in front when it lies ``FRONT_GAP`` nearer the camera than the torso's camera-facing surface
+    that projects within ``TORSO_NEAR`` of it; a forearm is held out when at least ``HELD_SHARE`` of its points
+    are. The region is the convex hull of those points (both arms together), grown by the reach in pixels at their
+    median depth (mitred corners)."""
+    out = np.zeros(len(vertices), dtype=bool)
+    torso = (vertex_parts == PART_NAMES.index("torso")) & (facing_cosine(vertices, normals, camera) > 0)
+    if not torso.any():
+        return out
+    uv, z = camera.project(vertices)
+    pixels_per_metre = float(camera.K[0, 0]) / np.median(z[torso])
+    tree, torso_z = cKDTree(uv[torso]), z[torso]
+    held = []
+    for name in ("left_forearm", "right_forearm"):
+        arm = np.nonzero(vertex_parts == PART_NAMES.index(name))[0]
+        near = tree.query_ball_point(uv[arm], TORSO_NEAR * pixels_per_metre)
+        front = np.array([len(n) > 0 and z[i] < torso_z[n].min() - FRONT_GAP for i, n in zip(arm, near, strict=True)])
+        if arm.size and front.mean() >= HELD_SHARE:
+            held.append(arm[front])
+    if not held:
+        return out
+    held = np.concatenate(held)
+    try:
+        hull = ConvexHull(uv[held])
+    except QhullError:  # too few or collinear points span no region
+        return out
+    reach = HELD_REACH * float(camera.K[0, 0]) / np.median(z[held])
+    outside = np.max(uv @ hull.equations[:, :2].T + hull.equations[:, 2], axis=1)  # mitred distance to the hull
+    return seen & (vertex_parts == PART_NAMES.index("torso")) & (outside < reach)
 
 
 @dataclass
@@ -119,6 +166,7 @@ class MirrorCompletion:
         colors: np.ndarray | None = None,
         facing: np.ndarray | None = None,
         rule: str = "mirror",
+        held: np.ndarray | None = None,
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
         ``vertex_parts``, and ``sdf``: ``field.body_distance`` of it) and which of its vertices the input camera
@@ -126,7 +174,8 @@ class MirrorCompletion:
         hull) however far out. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without
         it the gains are 1. ``colors`` (V, 3) are the photo's colours at the seen vertices (NaN elsewhere),
         ``facing`` (V,) the cosine between each vertex's normal and the way to the input camera; ``rule`` is
-        ``"mirror"`` (:func:`mirror_sources`) or ``"guarded"`` (the mirror, with :func:`guard_details`)."""
+        ``"mirror"`` (:func:`mirror_sources`) or ``"guarded"`` (the mirror, with :func:`guard_details`). ``held`` (V,)
+        marks seen vertices that are no source (:func:`within_held_reach`)."""
         sdf = sdf.reshape(-1)
         # Beyond EXACT_VOXELS outside the body ``sdf`` only bounds the distance from below: the nearest-vertex
         # query that finds each cell's owner also gives the distance that decides the room.
@@ -143,14 +192,27 @@ class MirrorCompletion:
         near, idx, pts = near[keep], idx[keep], pts[keep]
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[hidden], idx[hidden]
-        source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
+        held = np.zeros(len(canonical), dtype=bool) if held is None else held
+        sources_from = seen & ~held
+        source, source_vertex, counts = mirror_sources(p, owner, canonical, normals, vertex_parts, sources_from, tree)
+        colors = np.full((len(canonical), 3), np.nan) if colors is None else colors
+        facing = np.ones(len(canonical)) if facing is None else facing
         color = None
         if rule == "guarded":
-            colors = np.full((len(canonical), 3), np.nan) if colors is None else colors
-            facing = np.ones(len(canonical)) if facing is None else facing
             color = guard_details(
-                p, owner, source_vertex, canonical, normals, vertex_parts, seen, colors, facing, counts
+                p, owner, source_vertex, canonical, normals, vertex_parts, sources_from, colors, facing, counts
             )
+        if held.any():  # cells that would copy what the hands hold take their part's colour at their band
+            _, would_copy, _ = mirror_sources(p, owner, canonical, normals, vertex_parts, seen, tree)
+            refused = np.nonzero(held[would_copy])[0]
+            well_seen = sources_from & (facing >= WELL_SEEN)
+            part = vertex_parts[owner[refused]]
+            band = band_colors(p[refused], part, canonical, vertex_parts, well_seen, colors, BAND_HALF)
+            lost = np.isnan(band[:, 0])
+            band[lost] = band_colors(p[refused[lost]], part[lost], canonical, vertex_parts, well_seen, colors, np.inf)
+            color = np.full((len(p), 3), np.nan) if color is None else color
+            color[refused] = band
+            counts["held in front: band colour"] = int(refused.size)
         has = ~np.isnan(source[:, 0])
         gains = np.ones(len(cells)) if light is None else light[owner] / light[source_vertex]
         device = field.color.device
@@ -341,6 +403,33 @@ def robust_color(candidates: np.ndarray, colors: np.ndarray, radius: float) -> n
     return mode
 
 
+def band_colors(
+    p: np.ndarray,
+    part: np.ndarray,
+    canonical: np.ndarray,
+    vertex_parts: np.ndarray,
+    pool: np.ndarray,
+    colors: np.ndarray,
+    half: float,
+) -> np.ndarray:
+    """(N, 3) for cells at ``p`` of body parts ``part``: the mode (:func:`robust_color`) of the photo ``colors`` of
+    the ``pool`` (V,) vertices of the same part whose place along the part's axis lies within ``half`` of the
+    cell's (``np.inf``: the whole part). NaN where the part has fewer than ``MIN_PART_SEEN`` pool vertices or the
+    band none."""
+    centres, axes = part_axes(canonical, vertex_parts)
+    mode = np.full((len(p), 3), np.nan)
+    for k in np.unique(part):
+        rows = np.nonzero(part == k)[0]
+        members = np.nonzero(pool & (vertex_parts == k))[0]
+        if len(members) < MIN_PART_SEEN:
+            continue
+        along = (canonical[members] - centres[k]) @ axes[k]
+        cand = band_candidates(along, (p[rows] - centres[k]) @ axes[k], half, BAND_MOST)
+        cand = np.where(cand >= 0, members[np.maximum(cand, 0)], -1)
+        mode[rows] = robust_color(cand, colors, GUARD_RADIUS)
+    return mode
+
+
 def head_layout(canonical: np.ndarray, vertex_parts: np.ndarray) -> tuple[float, float, float]:
     """Height and depth of the ears and the midline's x on the canonical head (from ``select_vertices``)."""
     from ..body.fitting import select_vertices
@@ -402,17 +491,7 @@ def guard_details(
     part = vertex_parts[owner]
     well_seen = seen & (facing >= WELL_SEEN)
     hairy, face, scalp = hair_pool(canonical, normals, vertex_parts, seen, colors)
-    centres, axes = part_axes(canonical, vertex_parts)
-    mode = np.full((len(p), 3), np.nan)
-    for k in np.unique(part):
-        rows = np.nonzero(part == k)[0]
-        pool = np.nonzero(well_seen & (vertex_parts == k) & ~face)[0]
-        if len(pool) < MIN_PART_SEEN:
-            continue
-        along = (canonical[pool] - centres[k]) @ axes[k]
-        cand = band_candidates(along, (p[rows] - centres[k]) @ axes[k], BAND_HALF, BAND_MOST)
-        cand = np.where(cand >= 0, pool[np.maximum(cand, 0)], -1)
-        mode[rows] = robust_color(cand, colors, GUARD_RADIUS)
+    mode = band_colors(p, part, canonical, vertex_parts, well_seen & ~face, colors, BAND_HALF)
     source_color = colors[source_vertex]
     detail = np.linalg.norm(source_color - mode, axis=1) > DETAIL_DISTANCE  # False where either is unknown
     color[detail] = mode[detail]

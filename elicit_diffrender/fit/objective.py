@@ -113,6 +113,7 @@ class Objective:
         facing = np.stack([np.where(v.seen, v.facing, -np.inf) for v in observed])  # (photos, V)
         best = facing.argmax(0)
         seen = np.any([v.seen for v in observed], axis=0)
+        held = seen & ~np.any([v.seen & ~v.held for v in observed], axis=0)  # no photo shows them clear of the hands
         colors = np.stack([v.colors for v in observed])[best, np.arange(best.size)]
         facing = np.where(seen, facing.max(0), view.facing)
         pairs = MirrorCompletion.build(
@@ -128,13 +129,16 @@ class Objective:
             colors,
             facing,
             self.cfg.completion,
+            held,
         )
         rules = ", ".join(f"{name} {n}" for name, n in pairs.rule_counts.items())
         log.info(
-            "semantic prior: %s; %.0f%% of the body's vertices seen; %d of %d unseen colour cells have a source (%s); "
-            "the photo's light: key/ambient %.2f from %s",
+            "semantic prior: %s; %.0f%% of the body's vertices seen (%.0f%% of them within the reach of forearms "
+            "held in front: no source); %d of %d unseen colour cells have a source (%s); the photo's light: "
+            "key/ambient %.2f from %s",
             FALLBACK_NAME,
             100 * seen.mean(),
+            100 * held.sum() / max(seen.sum(), 1),
             len(pairs),
             pairs.unseen,
             rules,

@@ -21,7 +21,7 @@ from ..core.cameras import Camera
 from ..data.mesh_render import MeshAppearance, MeshRenderer
 from ..data.rigs import body_rotation, place_ring
 from ..data.subject import Subject, SubjectError
-from .completion import facing_cosine, visible_vertices
+from .completion import facing_cosine, visible_vertices, within_held_reach
 from .config import FitConfig
 from .hybrid_sampling import body_yaw
 from .shading import Shading, estimate_shading, seen_colors
@@ -117,6 +117,7 @@ class InputView:
     person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
     labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
     seen: np.ndarray  # (V,) bool: the body vertices the camera sees
+    held: np.ndarray  # (V,) bool: seen vertices within the reach of forearms held in front (no completion source)
     normals: np.ndarray  # (V, 3) the posed body's vertex normals (world)
     shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
     colors: np.ndarray  # (V, 3) the photo's colour at every seen vertex well inside the mask, NaN elsewhere
@@ -142,6 +143,7 @@ class InputView:
         normals = vertex_normals(posed.vertices, subject.body.faces)
         seen = visible_vertices(posed.vertices, normals, camera, out["depth"][0], person)
         full = subject.cameras[name]  # the light is fitted to the photo at full resolution
+        held = within_held_reach(posed.vertices, subject.body.vertex_parts(), normals, full, seen)
         photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
         shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
         colors = np.full(posed.vertices.shape, np.nan)
@@ -158,6 +160,7 @@ class InputView:
             person,
             labels,
             seen,
+            held,
             normals,
             shading,
             colors,
