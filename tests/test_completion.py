@@ -9,7 +9,7 @@ from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.body.template import vertex_normals
 from elicit_diffrender.core.cameras import look_at
 from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
-from elicit_diffrender.fit.completion import MirrorCompletion, visible_vertices
+from elicit_diffrender.fit.completion import FRONT_STRIP, MirrorCompletion, visible_vertices
 from elicit_diffrender.fit.shading import Shading, estimate_shading
 from elicit_diffrender.model.field import CanonicalField, grid_points
 
@@ -57,10 +57,19 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     src = pairs.sources.numpy()
     head = PART_NAMES.index("head")
     _, nearest = cKDTree(verts).query(cells)
-    # Front/back mirror images: same x and y, and the source is in front of the cell.
-    front_back = (np.abs(src[:, 0] - cells[:, 0]) < 1e-6) & (np.abs(src[:, 1] - cells[:, 1]) < 1e-6)
+    # Front/back mirror images: same x and y, and the source is in front of the cell; a torso cell near the midline
+    # takes the point beside the front's middle (a tie, a placket, a V-neck), on its own side, never the middle.
+    mid = verts[:, 0].mean()
+    off = cells[:, 0] - mid
+    in_strip = (parts[nearest] == PART_NAMES.index("torso")) & (np.abs(off) < FRONT_STRIP)
+    beside = np.abs(src[:, 0] - (mid + np.where(off >= 0, 1.0, -1.0) * FRONT_STRIP)) < 1e-6
+    same_x = np.abs(src[:, 0] - cells[:, 0]) < 1e-6
+    front_back = np.where(in_strip, beside, same_x) & (np.abs(src[:, 1] - cells[:, 1]) < 1e-6)
     assert front_back[parts[nearest] != head].mean() > 0.8
-    assert (src[front_back, 2] > cells[front_back, 2]).all()
+    behind = cells[:, 2] < centre_z[parts[nearest]]  # (an unseen cell in front, between the legs, mirrors back)
+    assert (src[front_back & behind, 2] > cells[front_back & behind, 2]).all() and (front_back & behind).mean() > 0.5
+    assert in_strip.sum() > 20 and front_back[in_strip].mean() > 0.8
+    assert pairs.rule_counts["front/back beside the midline"] == (front_back & in_strip).sum()
     # The head is never mirrored front to back (its back is not a face): its cells copy a seen vertex of its crown.
     assert not (front_back & (parts[nearest] == head) & (np.abs(src[:, 2] - cells[:, 2]) > 1e-6)).any()
     assert pairs.rule_counts["crown"] > 0
@@ -177,9 +186,10 @@ def test_the_blurred_target_is_the_mean_of_seven_trilinear_lookups(anny_body):
 
 
 def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the_head_hair(anny_body):
-    """The guarded mirror: a back cell whose mirror source shows a front-only detail (a tie down the torso's
-    middle) takes what its band mostly shows instead; other cells keep their mirror source; behind the ears the
-    head takes the hair the photo shows round the face, and a bald head (skin all round) takes none."""
+    """The guarded mirror: a back cell whose mirror source shows a front-only detail (a band of pockets down one
+    side of the chest, beside the middle that the mirror never copies) takes what its band mostly shows instead;
+    other cells keep their mirror source; behind the ears the head takes the hair the photo shows round the face,
+    and a bald head (skin all round) takes none."""
     from elicit_diffrender.fit.completion import head_layout
 
     verts, normals = _canonical(anny_body)
@@ -189,11 +199,12 @@ def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the
     seen = facing > 0.0
     mid = verts[torso, 0].mean()
     ear_y, ear_z, _ = head_layout(verts, parts)
-    top, tie_color = (0.2, 0.3, 0.8), (0.9, 0.1, 0.1)
+    top, detail_color = (0.2, 0.3, 0.8), (0.9, 0.1, 0.1)
     skin, hair = (0.8, 0.6, 0.5), (0.1, 0.08, 0.05)
     colors = np.tile(top, (len(verts), 1))
-    tie = torso & (np.abs(verts[:, 0] - mid) < 0.04) & (verts[:, 1] > 0.1)  # from the collar to the belt
-    colors[tie] = tie_color
+    side = verts[:, 0] - mid
+    detail = torso & (side > FRONT_STRIP) & (side < FRONT_STRIP + 0.05) & (verts[:, 1] > 0.1)  # collar to belt
+    colors[detail] = detail_color
     colors[head] = skin
     colors[head & ((verts[:, 1] > ear_y + 0.03) | (verts[:, 2] < ear_z))] = hair
     colors[~seen] = np.nan
@@ -211,16 +222,16 @@ def test_the_guarded_rule_keeps_front_details_in_front_and_gives_the_back_of_the
     _, source_vertex = cKDTree(verts).query(pairs.sources.numpy())
     fixed = pairs.colors.numpy()
     back = torso[owner] & (normals[owner, 2] < -0.5)
-    onto_tie = back & tie[source_vertex] & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)  # below the shoulders' tops
-    assert onto_tie.sum() > 10 and pairs.rule_counts["front detail: band colour"] >= onto_tie.sum()
-    np.testing.assert_allclose(fixed[onto_tie], np.tile(top, (onto_tie.sum(), 1)), atol=1e-6)  # not the tie
-    plain = back & ~tie[source_vertex] & (np.abs(cells[:, 0] - mid) > 0.1) & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)
+    onto_detail = back & detail[source_vertex] & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)  # below the shoulders
+    assert onto_detail.sum() > 10 and pairs.rule_counts["front detail: band colour"] >= onto_detail.sum()
+    np.testing.assert_allclose(fixed[onto_detail], np.tile(top, (onto_detail.sum(), 1)), atol=1e-6)  # not the detail
+    plain = back & ~detail[source_vertex] & (cells[:, 0] - mid < -0.1) & (cells[:, 1] > 0.12) & (cells[:, 1] < 0.4)
     assert plain.sum() > 20 and np.isnan(fixed[plain]).all()  # a source that agrees with its band stays live
     scalp_back = head[owner] & (cells[:, 2] < ear_z - 0.02) & (cells[:, 1] > ear_y)
     assert scalp_back.sum() > 5
     np.testing.assert_allclose(fixed[scalp_back], np.tile(hair, (scalp_back.sum(), 1)), atol=1e-6)
     target = pairs.targets(field).numpy()  # fixed colours where given, the grid's mirrored colour elsewhere
-    np.testing.assert_allclose(target[onto_tie], fixed[onto_tie], atol=1e-6)
+    np.testing.assert_allclose(target[onto_detail], fixed[onto_detail], atol=1e-6)
     colors[head & seen] = skin
     bald = build(colors)
     assert bald.rule_counts["hair"] == 0

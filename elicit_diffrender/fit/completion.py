@@ -8,7 +8,9 @@ that finds one: its mirror image through its body part's frontal plane (front <-
 the head, whose back is hair, not a face), through the body's sagittal plane (left <-> right),
 through both; the head's back instead copies the nearest seen vertex of its crown (the up-facing
 top ``CROWN_DEPTH`` of the head: hair, a hat or bare skin, not the face); else the nearest seen
-vertex of the cell's own part, else the nearest seen vertex. The photo's light (``fit.shading``,
+vertex of the cell's own part, else the nearest seen vertex. The torso's front middle
+(``FRONT_STRIP`` each side of the midline: a tie, a placket, a V-neck, an open jacket's gap) is
+copied nowhere: a back cell there mirrors the front beside it. The photo's light (``fit.shading``,
 fitted to the seen body) says how much darker or brighter the cell's side is than its source's, so
 the target is
 
@@ -68,6 +70,7 @@ HAIR_DARKER = 0.7
 HAIR_HUE = 0.05
 HAIR_SHARE = 0.3
 FACE_HALF_WIDTH = 0.045  # metres each side of the face's midline: eyes, nose and mouth, copied nowhere
+FRONT_STRIP = 0.08  # metres each side of the torso's midline: its front shows ties, plackets, V-necks; never copied
 # What the hands may hold: a forearm (with its hand) whose points lie at least FRONT_GAP in front of the torso's
 # surface behind them in the image (HELD_SHARE of them or more) is held out in front; the image region they span
 # (both arms together), grown by HELD_REACH, may show a held object instead of the torso. TORSO_NEAR: how close
@@ -300,23 +303,31 @@ def mirror_sources(
     tree: cKDTree,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The mirror rule: for cells at ``p`` (owned by body vertices ``owner``), the first seen point among their
-    mirror image through their part's frontal plane (not for the head), through the body's sagittal plane, through
-    both; the head's crown for the head; the nearest seen vertex of their part; the nearest seen vertex. Returns
-    the (N, 3) sources (NaN: none), their body vertices and how many cells each rule served."""
+    mirror image through their part's frontal plane (not for the head; a torso cell within ``FRONT_STRIP`` of the
+    body's midline takes it moved sideways to that distance, on its own side), through the body's sagittal plane,
+    through both; the head's crown for the head; the nearest seen vertex of their part; the nearest seen vertex.
+    Returns the (N, 3) sources (NaN: none), their body vertices and how many cells each rule served."""
     part = vertex_parts[owner]
     centre_z = np.zeros(len(PART_NAMES))
     for k in np.unique(vertex_parts):
         centre_z[k] = canonical[vertex_parts == k, 2].mean()
     front_back = p.copy()
     front_back[:, 2] = 2 * centre_z[part] - p[:, 2]
+    mid = canonical[:, 0].mean()
     left_right = p.copy()
-    left_right[:, 0] = 2 * canonical[:, 0].mean() - p[:, 0]
+    left_right[:, 0] = 2 * mid - p[:, 0]
     both = np.stack([left_right[:, 0], p[:, 1], front_back[:, 2]], 1)
     mirrored_ok = ~np.isin(part, [PART_NAMES.index(n) for n in NO_FRONT_BACK])
+    # The torso's front middle shows what its back does not: a tie, a placket, a V-neck, an open jacket's gap.
+    off = p[:, 0] - mid
+    in_strip = (part == PART_NAMES.index("torso")) & (np.abs(off) < FRONT_STRIP)
+    beside = front_back.copy()
+    beside[:, 0] = mid + np.where(off >= 0, 1.0, -1.0) * FRONT_STRIP
     source = np.full_like(p, np.nan)
     source_vertex = np.zeros(len(p), dtype=np.int64)
     counts = {}
     for name, candidate, allowed in (
+        ("front/back beside the midline", beside, in_strip),
         ("front/back", front_back, mirrored_ok),
         ("left/right", left_right, np.ones(len(p), dtype=bool)),
         ("both", both, mirrored_ok),
