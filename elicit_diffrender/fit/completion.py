@@ -116,29 +116,30 @@ def within_held_reach(
     are. The region is the convex hull of those points (both arms together), grown by the reach in pixels at their
     median depth (mitred corners)."""
     out = np.zeros(len(vertices), dtype=bool)
-    torso = (vertex_parts == PART_NAMES.index("torso")) & (facing_cosine(vertices, normals, camera) > 0)
+    is_torso = vertex_parts == PART_NAMES.index("torso")
+    torso = is_torso & (facing_cosine(vertices, normals, camera) > 0)
     if not torso.any():
         return out
     uv, z = camera.project(vertices)
     pixels_per_metre = float(camera.K[0, 0]) / np.median(z[torso])
     tree, torso_z = cKDTree(uv[torso]), z[torso]
-    held = []
+    in_front = []
     for name in ("left_forearm", "right_forearm"):
         arm = np.nonzero(vertex_parts == PART_NAMES.index(name))[0]
         near = tree.query_ball_point(uv[arm], TORSO_NEAR * pixels_per_metre)
         front = np.array([len(n) > 0 and z[i] < torso_z[n].min() - FRONT_GAP for i, n in zip(arm, near, strict=True)])
         if arm.size and front.mean() >= HELD_SHARE:
-            held.append(arm[front])
-    if not held:
+            in_front.append(arm[front])
+    if not in_front:
         return out
-    held = np.concatenate(held)
+    held = np.concatenate(in_front)
     try:
         hull = ConvexHull(uv[held])
     except QhullError:  # too few or collinear points span no region
         return out
     reach = HELD_REACH * float(camera.K[0, 0]) / np.median(z[held])
     outside = np.max(uv @ hull.equations[:, :2].T + hull.equations[:, 2], axis=1)  # mitred distance to the hull
-    return seen & (vertex_parts == PART_NAMES.index("torso")) & (outside < reach)
+    return seen & is_torso & (outside < reach)
 
 
 @dataclass
