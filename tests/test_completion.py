@@ -9,7 +9,7 @@ from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.body.template import vertex_normals
 from elicit_diffrender.core.cameras import look_at
 from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
-from elicit_diffrender.fit.completion import FRONT_STRIP, MirrorCompletion, visible_vertices
+from elicit_diffrender.fit.completion import FRONT_STRIP, MirrorCompletion, facing_cosine, visible_vertices
 from elicit_diffrender.fit.shading import Shading, estimate_shading
 from elicit_diffrender.model.field import CanonicalField, grid_points
 
@@ -262,14 +262,14 @@ def test_seen_torso_behind_forearms_held_in_front_is_no_source(anny_body):
     centre = verts[torso].mean(0)
     cam = look_at(centre + np.array([0.0, 0.0, 3.0]), centre, np.array([0.0, 1.0, 0.0]), 300.0, 256, 256)
     seen = normals[:, 2] > 0.0
-    held = within_held_reach(verts, parts, normals, cam, seen)
+    held = within_held_reach(verts, parts, facing_cosine(verts, normals, cam), cam, seen)
     chest = torso & seen & (np.abs(verts[:, 1] - chest_y) < 0.03) & (np.abs(verts[:, 0] - centre[0]) < 0.05)
     hips = torso & seen & (verts[:, 1] < chest_y - 0.1 - 2 * HELD_REACH)
     assert chest.sum() > 10 and held[chest].all()
     assert hips.sum() > 10 and not held[hips].any()
     assert not held[~torso].any() and not held[~seen].any()
     resting, *_ = _holding(anny_body, 0.0)
-    assert not within_held_reach(resting, parts, normals, cam, seen).any()
+    assert not within_held_reach(resting, parts, facing_cosine(resting, normals, cam), cam, seen).any()
 
     # A folder in the held zone, a blue top elsewhere: the back no longer copies the folder.
     top, folder = (0.2, 0.3, 0.8), (0.8, 0.8, 0.7)

@@ -105,11 +105,11 @@ def visible_vertices(
 
 
 def within_held_reach(
-    vertices: np.ndarray, vertex_parts: np.ndarray, normals: np.ndarray, camera: Camera, seen: np.ndarray
+    vertices: np.ndarray, vertex_parts: np.ndarray, facing: np.ndarray, camera: Camera, seen: np.ndarray
 ) -> np.ndarray:
-    """(V,) bool: the seen torso vertices (posed ``vertices`` with ``normals``) that may lie behind something the
-    hands hold: they project into the image region spanned by the forearms held out in front of the torso, grown by
-    ``HELD_REACH``. None when no forearm is held out.
+    """(V,) bool: the seen torso vertices (posed ``vertices``; ``facing``: :func:`facing_cosine` to ``camera``)
+    that may lie behind something the hands hold: they project into the image region spanned by the forearms held
+    out in front of the torso, grown by ``HELD_REACH``. None when no forearm is held out.
 
     A forearm point is in front when it lies ``FRONT_GAP`` nearer the camera than the torso's camera-facing surface
     that projects within ``TORSO_NEAR`` of it; a forearm is held out when at least ``HELD_SHARE`` of its points
@@ -117,7 +117,7 @@ def within_held_reach(
     median depth (mitred corners)."""
     out = np.zeros(len(vertices), dtype=bool)
     is_torso = vertex_parts == PART_NAMES.index("torso")
-    torso = is_torso & (facing_cosine(vertices, normals, camera) > 0)
+    torso = is_torso & (facing > 0)
     if not torso.any():
         return out
     uv, z = camera.project(vertices)

@@ -143,13 +143,13 @@ class InputView:
         normals = vertex_normals(posed.vertices, subject.body.faces)
         seen = visible_vertices(posed.vertices, normals, camera, out["depth"][0], person)
         full = subject.cameras[name]  # the light is fitted to the photo at full resolution
-        held = within_held_reach(posed.vertices, subject.body.vertex_parts(), normals, full, seen)
+        facing = facing_cosine(posed.vertices, normals, full)
+        held = within_held_reach(posed.vertices, subject.body.vertex_parts(), facing, full, seen)
         photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
         shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
         colors = np.full(posed.vertices.shape, np.nan)
         idx, rgb = seen_colors(photo, person_full, full, posed.vertices, seen)
         colors[idx] = rgb
-        facing = facing_cosine(posed.vertices, normals, full)
         labels = out["labels"][0]
         yaw = body_yaw(full, body_rotation(subject.body, posed.bone_transforms))
         return cls(
