@@ -244,6 +244,35 @@ def test_posture_priors_follow_what_the_photo_shows():
     np.testing.assert_array_equal(arms_raised(unseen), [False, False])
 
 
+def test_a_shin_shown_at_length_is_held_in_the_image_plane():
+    """The shin prior's gate: shins at length in the image (a seated person's, hanging); one stretched towards the
+    camera (short in the image) or unseen stays free. Its cost: the squared tilt of the held shins along the camera's
+    axis, zero for a shin in the image plane."""
+    from elicit_diffrender.body.fitting import AnnyFit, shins_at_length
+
+    seated = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}  # shins 85 px, torso 100
+    np.testing.assert_array_equal(shins_at_length(_landmarks(seated)), [1.0, 1.0])
+    stretched = {**seated, 27: (95, 240)}  # the left foot towards the camera: 25 px
+    np.testing.assert_array_equal(shins_at_length(_landmarks(stretched)), [0.0, 1.0])
+    unseen = _landmarks(seated)
+    unseen[28, 2] = 0.1
+    np.testing.assert_array_equal(shins_at_length(unseen), [1.0, 0.0])
+    np.testing.assert_array_equal(shins_at_length(None), [0.0, 0.0])
+
+    fit = AnnyFit()
+    fit.shins_in_plane = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    heads = torch.zeros(len(fit.names), 3, dtype=torch.float64)
+    knee, foot = fit.names.index("lowerleg01.L"), fit.names.index("foot.L")
+    heads[knee] = torch.tensor([0.1, 0.4, 3.0], dtype=torch.float64)
+    heads[foot] = heads[knee] + torch.tensor([0.0, 0.42, 0.0], dtype=torch.float64)  # straight down: in the plane
+    assert fit.shin_plane(heads).item() < 1e-12
+    tilt = np.radians(40.0)  # the foot 40 degrees towards the camera (camera space: z away)
+    heads[foot] = heads[knee] + 0.42 * torch.tensor([0.0, np.cos(tilt), -np.sin(tilt)], dtype=torch.float64)
+    assert abs(fit.shin_plane(heads).item() - np.sin(tilt) ** 2) < 1e-9
+    fit.shins_in_plane = torch.tensor([0.0, 1.0], dtype=torch.float64)  # only the right shin held
+    assert fit.shin_plane(heads).item() < 1e-12
+
+
 def test_an_upright_trunk_takes_the_thighs_lean_and_keeps_its_own_sideways_tilt():
     from elicit_diffrender.body.fitting import upright_trunk
 

@@ -125,6 +125,13 @@ UPRIGHT_WEIGHT = 1.0
 # camera differs from its thighs' by more than this (its errors on the test subjects: 14-23 degrees; a hip sway or
 # a slight stoop stays below).
 UPRIGHT_TRIGGER_DEG = 10.0
+# Cost of each shin leaving the image plane (the square of its direction's component along the camera's axis),
+# for a person not standing whose shin the image shows at length (its knee-to-ankle line at least SHIN_AT_LENGTH
+# torso lengths long): a seated person's shins, whose tilt towards the camera nothing else in one photo fixes
+# (``seated``, synthetic: 40-45 degrees off, feet pushed towards the camera). A shin stretched towards the camera
+# is short in the image and stays free; one stretched sideways is at length and in the image plane.
+SHIN_PLANE_WEIGHT = 1.0
+SHIN_AT_LENGTH = 0.55
 ARMS = (("upperarm01.L", "lowerarm01.L"), ("upperarm01.R", "lowerarm01.R"))  # shoulder and elbow joints
 LEGS = (("upperleg01.L", "lowerleg01.L"), ("upperleg01.R", "lowerleg01.R"))  # hip and knee joints
 
@@ -175,6 +182,8 @@ class AnnyFit(torch.nn.Module):
         self.arm_joints = torch.tensor([[self.names.index(n) for n in arm] for arm in ARMS])  # (2, shoulder/elbow)
         self.spine_ends = [self.names.index(n) for n in ("root", "neck01")]
         self.legs = torch.tensor([[self.names.index(n) for n in leg] for leg in LEGS])  # (2, hip/knee)
+        self.feet = [self.names.index(n) for n in ("foot.L", "foot.R")]
+        self.shins_in_plane = torch.zeros(2, dtype=torch.float64)  # which shins the image-plane prior holds
         self.knee_weight = KNEE_WEIGHT
         self.arms_in_plane = torch.ones(2, dtype=torch.float64)  # which arms the frontal-plane prior holds
         self.rotvecs = torch.nn.Parameter(torch.zeros(len(FREE_JOINTS), 3, dtype=torch.float64))
@@ -217,6 +226,13 @@ class AnnyFit(torch.nn.Module):
         arms = heads[self.arm_joints[:, 1]] - heads[self.arm_joints[:, 0]]
         arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
         return ((self.arms_in_plane if which is None else which) * (arms @ normal) ** 2).sum()
+
+    def shin_plane(self, heads: torch.Tensor) -> torch.Tensor:
+        """How far the shins that ``shins_in_plane`` holds leave the image plane: the squared component of each
+        knee -> ankle direction along the camera's axis (camera space: z), from the joint ``heads`` (J, 3)."""
+        shins = heads[self.feet] - heads[self.legs[:, 1]]
+        shins = shins / shins.norm(dim=1, keepdim=True).clamp(min=1e-9)
+        return (self.shins_in_plane * shins[:, 2] ** 2).sum()
 
     def uprightness(self, heads: torch.Tensor) -> torch.Tensor:
         """The squared difference between how far the spine (pelvis to neck) and the thighs (knees to hips) point
@@ -392,17 +408,29 @@ def standing(keypoints: np.ndarray | None) -> bool:
                     for h, k, a in ((23, 25, 27), (24, 26, 28))))  # fmt: skip
 
 
-def arms_in_image_plane(keypoints: np.ndarray | None) -> np.ndarray:
-    """(2,) 1 for each upper arm (left, right) that the image shows at length, 0 for one foreshortened
-    (``ARM_FORESHORTENED``) or not seen."""
+def segments_at_length(keypoints: np.ndarray | None, pairs, torso_lengths: float) -> np.ndarray:
+    """(2,) 1 for each of the (left, right) landmark ``pairs`` the image shows at least ``torso_lengths`` torso
+    lengths long, 0 for one shorter (foreshortened) or not seen."""
     out = np.zeros(2)
     if keypoints is None or not _visible(keypoints, (11, 12, 23, 24)):
         return out
     torso = torso_length_px(keypoints)
-    for side, (shoulder, elbow) in enumerate(((11, 13), (12, 14))):
-        length = np.linalg.norm(keypoints[elbow, :2] - keypoints[shoulder, :2])
-        out[side] = float(_visible(keypoints, (shoulder, elbow)) and length >= ARM_FORESHORTENED * torso)
+    for side, (a, b) in enumerate(pairs):
+        length = np.linalg.norm(keypoints[b, :2] - keypoints[a, :2])
+        out[side] = float(_visible(keypoints, (a, b)) and length >= torso_lengths * torso)
     return out
+
+
+def arms_in_image_plane(keypoints: np.ndarray | None) -> np.ndarray:
+    """(2,) 1 for each upper arm (left, right) that the image shows at length (``ARM_FORESHORTENED``), 0 for one
+    foreshortened or not seen."""
+    return segments_at_length(keypoints, ((11, 13), (12, 14)), ARM_FORESHORTENED)
+
+
+def shins_at_length(keypoints: np.ndarray | None) -> np.ndarray:
+    """(2,) 1 for each shin (left, right) that the image shows at length (``SHIN_AT_LENGTH`` torso lengths from
+    knee to ankle), 0 for one foreshortened or not seen."""
+    return segments_at_length(keypoints, ((25, 27), (26, 28)), SHIN_AT_LENGTH)
 
 
 def arms_raised(keypoints: np.ndarray) -> np.ndarray:
@@ -467,6 +495,8 @@ def fit_anny_to_image(
     arms_lowered = None  # the arms the frontal-plane prior holds from the start (``arms_raised``)
     if keypoints is not None:
         fit.arms_in_plane = torch.as_tensor(arms_in_image_plane(keypoints))
+        if not is_standing:  # a standing person's knees are held straight instead (``KNEE_WEIGHT``)
+            fit.shins_in_plane = torch.as_tensor(shins_at_length(keypoints))
         raised = arms_raised(keypoints)
         arms_lowered = fit.arms_in_plane * torch.as_tensor(~raised, dtype=torch.float64)
         goal = targets.keypoints[kp_ids]
@@ -568,6 +598,7 @@ def fit_anny_to_image(
             verts, heads, rots = fit()
             total = 1e-3 * fit.prior() + WORLD_WEIGHT * world_loss(verts, heads, rots)
             total = total + ARM_PLANE_WEIGHT * fit.arm_plane(heads, None if with_silhouette else arms_lowered)
+            total = total + SHIN_PLANE_WEIGHT * fit.shin_plane(heads)
             if hold_upright:
                 total = total + UPRIGHT_WEIGHT * fit.uprightness(heads)
             if keypoints is not None:
@@ -590,6 +621,7 @@ def fit_anny_to_image(
     with torch.no_grad():
         verts, heads, rots = fit()
         report = {"standing": is_standing, "held_upright": hold_upright, "arms_in_plane": fit.arms_in_plane.tolist(),
+                  "shins_in_plane": fit.shins_in_plane.tolist(),
                   "start_yaw_deg": round(float(np.degrees(best[2])))}  # fmt: skip
         if keypoints is not None:
             report["arms_raised"] = raised.tolist()
