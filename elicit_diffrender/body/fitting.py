@@ -408,7 +408,9 @@ def standing(keypoints: np.ndarray | None) -> bool:
                     for h, k, a in ((23, 25, 27), (24, 26, 28))))  # fmt: skip
 
 
-def segments_at_length(keypoints: np.ndarray | None, pairs, torso_lengths: float) -> np.ndarray:
+def segments_at_length(
+    keypoints: np.ndarray | None, pairs: tuple[tuple[int, int], tuple[int, int]], torso_lengths: float
+) -> np.ndarray:
     """(2,) 1 for each of the (left, right) landmark ``pairs`` the image shows at least ``torso_lengths`` torso
     lengths long, 0 for one shorter (foreshortened) or not seen."""
     out = np.zeros(2)
