@@ -222,6 +222,8 @@ def _landmarks(points: dict[int, tuple[float, float]]) -> np.ndarray:
 
 STANDING_2D = {11: (90, 100), 12: (110, 100), 13: (80, 150), 14: (120, 150), 23: (93, 200), 24: (107, 200),
                25: (93, 290), 26: (107, 290), 27: (93, 380), 28: (107, 380)}  # fmt: skip
+# Seated, facing the camera: thighs towards the camera (knees 15 px below the hips), shins hanging (85 px; torso 100).
+SEATED_2D = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}
 
 
 def test_posture_priors_follow_what_the_photo_shows():
@@ -230,8 +232,7 @@ def test_posture_priors_follow_what_the_photo_shows():
     from elicit_diffrender.body.fitting import arms_in_image_plane, arms_raised, standing
 
     assert standing(_landmarks(STANDING_2D))
-    seated = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}  # thighs towards the camera
-    assert not standing(_landmarks(seated))
+    assert not standing(_landmarks(SEATED_2D))
     assert not standing(None) and not standing(_landmarks({k: v for k, v in STANDING_2D.items() if k != 27}))
     np.testing.assert_array_equal(arms_in_image_plane(_landmarks(STANDING_2D)), [1.0, 1.0])
     forward = {**STANDING_2D, 13: (88, 110)}  # the left upper arm seen end-on: 10 px of a 100 px torso
@@ -250,11 +251,10 @@ def test_a_shin_shown_at_length_is_held_in_the_image_plane():
     axis, zero for a shin in the image plane."""
     from elicit_diffrender.body.fitting import AnnyFit, shins_at_length
 
-    seated = {**STANDING_2D, 25: (93, 215), 26: (107, 215), 27: (93, 300), 28: (107, 300)}  # shins 85 px, torso 100
-    np.testing.assert_array_equal(shins_at_length(_landmarks(seated)), [1.0, 1.0])
-    stretched = {**seated, 27: (95, 240)}  # the left foot towards the camera: 25 px
+    np.testing.assert_array_equal(shins_at_length(_landmarks(SEATED_2D)), [1.0, 1.0])
+    stretched = {**SEATED_2D, 27: (95, 240)}  # the left foot towards the camera: 25 px
     np.testing.assert_array_equal(shins_at_length(_landmarks(stretched)), [0.0, 1.0])
-    unseen = _landmarks(seated)
+    unseen = _landmarks(SEATED_2D)
     unseen[28, 2] = 0.1
     np.testing.assert_array_equal(shins_at_length(unseen), [1.0, 0.0])
     np.testing.assert_array_equal(shins_at_length(None), [0.0, 0.0])
