@@ -245,6 +245,22 @@ def test_posture_priors_follow_what_the_photo_shows():
     np.testing.assert_array_equal(arms_raised(unseen), [False, False])
 
 
+def test_a_held_arm_whose_wrist_was_lost_is_released():
+    """After the first fine stage, an arm the frontal-plane prior holds whose model wrist lies more than a quarter of a
+    torso length (here 100 px) from its keypoint has that stage run again without the prior; a wrist near its
+    keypoint, an arm the prior does not hold or a wrist MediaPipe does not see keeps it."""
+    from elicit_diffrender.body.fitting import wrists_lost
+
+    keypoints = _landmarks({**STANDING_2D, 15: (75, 195), 16: (125, 195)})
+    both = np.array([True, True])
+    assert not wrists_lost(keypoints, np.array([[77.0, 190.0], [125.0, 195.0]]), both).any()
+    folded = np.array([[95.0, 140.0], [125.0, 195.0]])  # the left forearm folded up: its wrist 58 px off
+    np.testing.assert_array_equal(wrists_lost(keypoints, folded, both), [True, False])
+    np.testing.assert_array_equal(wrists_lost(keypoints, folded, np.array([False, True])), [False, False])
+    keypoints[15, 2] = 0.1
+    assert not wrists_lost(keypoints, folded, both).any()
+
+
 def test_a_shin_shown_at_length_is_held_in_the_image_plane():
     """The shin prior's gate: shins at length in the image (a seated person's, hanging); one stretched towards the
     camera (short in the image) or unseen stays free. Its cost: the squared tilt of the held shins along the camera's

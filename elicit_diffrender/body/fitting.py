@@ -15,7 +15,8 @@ lean 9-16 degrees away from the true ones, always with the ankles back; on six (
 upper arms are 6-36 degrees off and its forearms 8-56. An elbow is a hinge, so how far a forearm reaches
 towards the camera shows in its foreshortening in the image, and the hinge prior says to which side;
 the upper arms are held near the body's frontal plane (``ARM_PLANE_WEIGHT``; an arm raised above the shoulder only
-in the silhouette stage, once its keypoints have brought it up). Priors keep the pose
+in the silhouette stage, once its keypoints have brought it up, and so is an arm whose wrist the prior lost on the
+way: ``WRIST_LOST``). Priors keep the pose
 near rest (knees nearly straight, knees and elbows bending the right way) and the phenotype near
 average.
 """
@@ -117,6 +118,11 @@ STANDING_DROP = 0.55
 # An upper arm shorter than this many torso lengths in the image reaches towards or away from the camera: the
 # frontal-plane prior is not applied to it (an arm held out to the camera, a hand on the far hip).
 ARM_FORESHORTENED = 0.35
+# A wrist this many torso lengths from its keypoint after the first fine stage was lost to the frontal-plane prior:
+# held from the start, the prior can fold a forearm while the upper arm swings into the plane, and the robust
+# keypoint term no longer pulls a wrist that far back (fs0000, arms hanging straight: 183 px from its keypoint, 148
+# at the end; its lost wrists then fitted to 3 px). That stage is run again with the arm held only later.
+WRIST_LOST = 0.25
 # A standing person's spine (pelvis to neck) leans towards or away from the camera as much as their thighs do
 # (``AnnyFit.uprightness``): the keypoints, the silhouette and MediaPipe's metric trunk otherwise let the spine bend
 # back while the collarbones bring the shoulders forward, or lean the whole trunk 10-20 degrees towards the camera.
@@ -444,6 +450,19 @@ def arms_raised(keypoints: np.ndarray) -> np.ndarray:
     return np.array([bool(_visible(keypoints, (s, e)) and keypoints[e, 1] < keypoints[s, 1]) for s, e in pairs])
 
 
+def wrists_lost(keypoints: np.ndarray, wrists: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """(2,) bool for each arm (left, right) that the frontal-plane prior holds (``held``, (2,) bool) and whose
+    model wrist (``wrists``, (2, 2) pixels) lies more than ``WRIST_LOST`` torso lengths from its seen keypoint."""
+    out = np.zeros(2, dtype=bool)
+    if not _visible(keypoints, (11, 12, 23, 24)):
+        return out
+    reach = WRIST_LOST * torso_length_px(keypoints)
+    for side, k in enumerate((15, 16)):
+        far = np.linalg.norm(wrists[side] - keypoints[k, :2]) > reach
+        out[side] = bool(held[side] and _visible(keypoints, (k,)) and far)
+    return out
+
+
 def upright_trunk(trunk: torch.Tensor, thighs: list[torch.Tensor]) -> torch.Tensor:
     """MediaPipe's metric trunk direction (hips to shoulders; camera axes: x right, y down, z away) with its lean
     towards the camera replaced by its thighs' mean (each hip to knee, so taken reversed): a standing person's
@@ -613,7 +632,17 @@ def fit_anny_to_image(
 
         return loss
 
+    before = {k: v.detach().clone() for k, v in fit.state_dict().items()}
     _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
+    released = np.zeros(2, dtype=bool)
+    if keypoints is not None:
+        with torch.no_grad():
+            uv = targets.project(model_keypoints(*fit())).numpy()
+        released = wrists_lost(keypoints, uv[[kp_ids.index(15), kp_ids.index(16)]], arms_lowered.numpy() > 0)
+        if released.any():
+            arms_lowered = arms_lowered * torch.as_tensor(~released, dtype=torch.float64)
+            fit.load_state_dict(before)
+            _optimise(fit, list(fit.parameters()), fine(False), steps // 2, 0.02)
     _optimise(fit, list(fit.parameters()), fine(True), steps // 2, 0.01)
     if render_silhouette is not None and render_steps > 0:
         faces = fit.model.get_triangular_faces().cpu().numpy()
@@ -626,7 +655,7 @@ def fit_anny_to_image(
                   "shins_in_plane": fit.shins_in_plane.tolist(),
                   "start_yaw_deg": round(float(np.degrees(best[2])))}  # fmt: skip
         if keypoints is not None:
-            report["arms_raised"] = raised.tolist()
+            report["arms_raised"], report["arms_released"] = raised.tolist(), released.tolist()
             uv = targets.project(model_keypoints(verts, heads, rots))
             err = (uv - goal[:, :2]).norm(dim=1)[vis > 0].numpy()
             report["keypoint_error_px"] = {
