@@ -352,6 +352,17 @@ def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
     assert after_fit > after_init + 2.0, (after_init, after_fit)
 
 
+def test_a_fit_trains_when_the_caller_turned_gradients_off(tmp_path, tiny_subject):
+    """A script that renders under ``torch.set_grad_enabled(False)`` may still fit (bench_texture_export's demo)."""
+    cfg = make_config("cpu-fast", None, TINY + ["init_steps=3", "steps=3"])
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    before = trainer.avatar.field.color.detach().clone()
+    with torch.no_grad():
+        trainer.run()
+    assert (trainer.avatar.field.color.detach() - before).abs().max() > 0
+    assert (tmp_path / "run" / "avatar.safetensors").is_file()
+
+
 @pytest.mark.slow
 def test_kill_and_resume(tmp_path, tiny_subject):
     run = tmp_path / "run"

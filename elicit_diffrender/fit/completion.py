@@ -70,7 +70,9 @@ HAIR_DARKER = 0.7
 HAIR_HUE = 0.05
 HAIR_SHARE = 0.3
 FACE_HALF_WIDTH = 0.045  # metres each side of the face's midline: eyes, nose and mouth, copied nowhere
-FRONT_STRIP = 0.08  # metres each side of the torso's midline: its front shows ties, plackets, V-necks; never copied
+# Metres each side of the torso's midline: its front shows ties, plackets, V-necks, an open jacket's gap, a zip, a
+# logo; never copied. A back cell there copies the front at this distance from the midline, near the side seams.
+FRONT_STRIP = 0.12
 # What the hands may hold: a forearm (with its hand) whose points lie at least FRONT_GAP in front of the torso's
 # surface behind them in the image (HELD_SHARE of them or more) is held out in front; the image region they span
 # (both arms together), grown by HELD_REACH, may show a held object instead of the torso. TORSO_NEAR: how close

@@ -300,8 +300,10 @@ class Trainer:
                     start = time.perf_counter()
                     self.save()
 
+    @torch.enable_grad()
     def run(self, resume: bool = False) -> dict:
-        """Train (continuing the run folder's checkpoint with ``resume``), save the avatar, write run.json.
+        """Train (continuing the run folder's checkpoint with ``resume``), save the avatar, write run.json. Gradients
+        are on whatever the caller's mode (a script that renders under ``torch.set_grad_enabled(False)`` may fit).
 
         ``seconds`` in the report sum every run of the fit: set-up, and each stage up to its last checkpoint.
         """
