@@ -247,8 +247,9 @@ def test_posture_priors_follow_what_the_photo_shows():
 
 def test_a_held_arm_whose_wrist_was_lost_is_released():
     """After the first fine stage, an arm the frontal-plane prior holds whose model wrist lies more than a quarter of a
-    torso length (here 100 px) from its keypoint has that stage run again without the prior; a wrist near its
-    keypoint, an arm the prior does not hold or a wrist MediaPipe does not see keeps it."""
+    torso length (the torso here is 100 px, so 25 px) from its keypoint is released: that stage runs again with the
+    arm held only from the silhouette stage. A wrist near its keypoint, an arm the prior does not hold or a wrist
+    MediaPipe does not see stays as it is."""
     from elicit_diffrender.body.fitting import wrists_lost
 
     keypoints = _landmarks({**STANDING_2D, 15: (75, 195), 16: (125, 195)})
