@@ -14,6 +14,7 @@ from test_fit import TINY  # noqa: I001 - the tiny fit settings are shared with 
 from elicit_diffrender.core.io import write_image, write_json
 from elicit_diffrender.data.subject import SubjectError, load_subject
 from elicit_diffrender.fit.config import make_config
+from elicit_diffrender.fit.objective import source_photos
 from elicit_diffrender.fit.trainer import Trainer
 from elicit_diffrender.fit.views import FitViews
 from elicit_diffrender.inputs import prepare as prepare_module
@@ -127,6 +128,18 @@ def test_a_back_photo_is_reconstructed_not_guessed(truth, tmp_path):
             )
     assert scores["two"] > scores["one"] + 1.5, scores  # measured: 20.09 against 17.96 on the person's pixels
     assert scores["two"] > scores["reference"] + 1.5, scores
+
+
+def test_a_vertex_takes_its_colour_from_a_photo_that_shows_it_clear_of_the_hands():
+    """A chest vertex the front photo sees squarely but behind a held folder, and a side photo sees clear, takes
+    the side photo's colour (with the front's, a held_folder avatar from front + side photos wore the folder on its
+    back); one that only the front shows behind the folder stays held; one seen clear by both takes the squarer."""
+    seen = np.array([[True, True, True, False], [True, False, True, False]])
+    held = np.array([[True, True, False, False], [False, False, False, False]])
+    facing = np.array([[0.9, 0.9, 0.2, -0.5], [0.3, -0.2, 0.8, -0.1]])
+    best, held_everywhere = source_photos(seen, held, facing)
+    assert best[:3].tolist() == [1, 0, 1]
+    assert held_everywhere.tolist() == [False, True, False, False]
 
 
 def test_fit_views_of_every_photo_come_before_the_motion(truth, tmp_path):

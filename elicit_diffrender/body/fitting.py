@@ -14,7 +14,8 @@ phenotype). MediaPipe's metric shins and arms are not used: on seven synthetic s
 lean 9-16 degrees away from the true ones, always with the ankles back; on six (seeds 1-3, 9-11) its
 upper arms are 6-36 degrees off and its forearms 8-56. An elbow is a hinge, so how far a forearm reaches
 towards the camera shows in its foreshortening in the image, and the hinge prior says to which side;
-the upper arms are held near the body's frontal plane (``ARM_PLANE_WEIGHT``; an arm raised above the shoulder only
+the upper arms are held near the body's frontal plane as far as the photo is taken from the front or the back
+(``ARM_PLANE_WEIGHT``; an arm raised above the shoulder only
 in the silhouette stage, once its keypoints have brought it up, and so is an arm whose wrist the prior lost on the
 way: ``WRIST_LOST``). Priors keep the pose
 near rest (knees nearly straight, knees and elbows bending the right way) and the phenotype near
@@ -108,9 +109,11 @@ HINGES = {"lowerleg01.L": 1.0, "lowerleg01.R": 1.0, "lowerarm01.L": -1.0, "lower
 KNEE_WEIGHT = 400.0
 KNEE_WEIGHT_NOT_STANDING = 1.0  # a photo of someone seated, kneeling or mid-stride shows bent knees: no such prior
 # Cost of each upper arm leaving the body's frontal plane (the square of its direction's component along the
-# torso's normal). Nothing in one photo says how far an upper arm reaches towards or away from the camera:
-# MediaPipe's metric upper arms were 6-36 degrees off the true ones on six synthetic subjects (0.5-20 with this
-# prior and no metric arms).
+# torso's normal), times the square of the normal's component along the camera's axis. Nothing in one photo says
+# how far an upper arm reaches towards or away from the camera: MediaPipe's metric upper arms were 6-36 degrees off
+# the true ones on six synthetic subjects (0.5-20 with this prior and no metric arms). A photo from the side shows
+# that reach; held there at full weight, the prior turned side-view bodies 19-36 degrees towards the camera (five
+# multi-photo subjects' side photos).
 ARM_PLANE_WEIGHT = 1.0
 # A standing person (``standing``): each leg's knee at least STANDING_DROP torso lengths below its hip and its ankle
 # as far below its knee, in the image. Only then are the knees held nearly straight and the trunk upright (below).
@@ -223,15 +226,19 @@ class AnnyFit(torch.nn.Module):
         return (self.rotvecs**2).sum() + 0.5 * (self.pheno**2).sum() + 10.0 * bend + self.knee_weight * knees
 
     def arm_plane(self, heads: torch.Tensor, which: torch.Tensor | None = None) -> torch.Tensor:
-        """How far the upper arms leave the torso's frontal plane: the sum over the arms ``arms_in_plane`` (or
-        ``which``, (2,) weights) holds of the squared component of the shoulder -> elbow direction along the plane's
-        normal (the shoulder line crossed with the trunk, from the joint ``heads`` (J, 3))."""
+        """How far the upper arms leave the torso's frontal plane where the photo cannot show it: the sum over the
+        arms ``arms_in_plane`` (or ``which``, (2,) weights) holds of the squared component of the shoulder -> elbow
+        direction along the plane's normal ``n`` (the shoulder line crossed with the trunk, from the joint ``heads``
+        (J, 3)), times ``n_z^2`` (camera space, held fixed): how much of the normal lies along the camera's axis. A
+        photo from the front or the back cannot show an arm's reach along the normal; one from the side shows it
+        (a swing in a walk, a reach forward), and there the prior would turn the whole body instead."""
         left, right, hip_left, hip_right = heads[self.torso_joints]
         normal = torch.linalg.cross(left - right, (left + right) / 2 - (hip_left + hip_right) / 2)
         normal = normal / normal.norm().clamp(min=1e-9)
         arms = heads[self.arm_joints[:, 1]] - heads[self.arm_joints[:, 0]]
         arms = arms / arms.norm(dim=1, keepdim=True).clamp(min=1e-9)
-        return ((self.arms_in_plane if which is None else which) * (arms @ normal) ** 2).sum()
+        unseen = normal[2].detach() ** 2
+        return unseen * ((self.arms_in_plane if which is None else which) * (arms @ normal) ** 2).sum()
 
     def shin_plane(self, heads: torch.Tensor) -> torch.Tensor:
         """How far the shins that ``shins_in_plane`` holds leave the image plane: the squared component of each

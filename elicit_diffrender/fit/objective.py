@@ -65,6 +65,17 @@ def outside_body(
     return torch.as_tensor(outside.reshape(field.shape), dtype=torch.float32, device=device)
 
 
+def source_photos(seen: np.ndarray, held: np.ndarray, facing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which photo each body vertex takes its colour from, given every photo's (photos, V) ``seen``, ``held``
+    (seen, but maybe behind what the hands hold) and ``facing`` (cosine to the camera): the one that sees it most
+    squarely clear of the hands, else the one that sees it most squarely. Returns the (V,) photo indices and the
+    (V,) vertices that no photo shows clear of the hands (seen, but only as held)."""
+    clear = np.where(seen & ~held, facing, -np.inf)
+    any_clear = np.isfinite(clear.max(0))
+    best = np.where(any_clear, clear.argmax(0), np.where(seen, facing, -np.inf).argmax(0))
+    return best, seen.any(0) & ~any_clear
+
+
 class Objective:
     def __init__(
         self,
@@ -104,18 +115,20 @@ class Objective:
         self, body: BodyModel, body_sdf: np.ndarray, margin: float, garment: np.ndarray | None
     ) -> MirrorCompletion:
         """The completion of the cells no observed photo sees; each vertex takes its colour and facing from the
-        photo that sees it most squarely, the light is the first photo's."""
+        photo that sees it most squarely clear of the hands (of those that see it, if none does), the light is the
+        first photo's."""
         view = self.views.input
         canon = body.pose(body.canonical_pose())
         normals = vertex_normals(canon.vertices, body.faces)
         light = view.shading(view.normals)
         observed = self.views.observed
-        facing = np.stack([np.where(v.seen, v.facing, -np.inf) for v in observed])  # (photos, V)
-        best = facing.argmax(0)
+        best, held = source_photos(
+            np.stack([v.seen for v in observed]), np.stack([v.held for v in observed]),
+            np.stack([v.facing for v in observed]),
+        )  # fmt: skip
         seen = np.any([v.seen for v in observed], axis=0)
-        held = seen & ~np.any([v.seen & ~v.held for v in observed], axis=0)  # no photo shows them clear of the hands
         colors = np.stack([v.colors for v in observed])[best, np.arange(best.size)]
-        facing = np.where(seen, facing.max(0), view.facing)
+        facing = np.where(seen, np.stack([v.facing for v in observed])[best, np.arange(best.size)], view.facing)
         pairs = MirrorCompletion.build(
             self.field,
             canon.vertices,
