@@ -95,14 +95,18 @@ def test_keypoint_offsets_move_landmarks_along_their_bones():
             assert across < 0.035, (k, across)
 
 
+# Shoulders, hips and elbows of a body facing +z: the left upper arm in the frontal plane, the right 45 degrees out.
+ONE_ARM_OUT_OF_PLANE = {
+    "upperarm01.L": (0.2, 1.4, 0.0), "upperarm01.R": (-0.2, 1.4, 0.0), "upperleg01.L": (0.1, 0.9, 0.0),
+    "upperleg01.R": (-0.1, 0.9, 0.0), "lowerarm01.L": (0.45, 1.15, 0.0), "lowerarm01.R": (-0.2, 1.1, 0.3),
+}  # fmt: skip
+
+
 def test_arm_plane_prior_counts_only_reach_out_of_the_frontal_plane():
     """An upper arm in the plane of the shoulders and the trunk costs nothing; one at 45 degrees out of it 0.5."""
     fit = AnnyFit()
     heads = torch.zeros(len(fit.names), 3, dtype=torch.float64)
-    for name, xyz in {
-        "upperarm01.L": (0.2, 1.4, 0.0), "upperarm01.R": (-0.2, 1.4, 0.0), "upperleg01.L": (0.1, 0.9, 0.0),
-        "upperleg01.R": (-0.1, 0.9, 0.0), "lowerarm01.L": (0.45, 1.15, 0.0), "lowerarm01.R": (-0.2, 1.1, 0.3),
-    }.items():  # fmt: skip
+    for name, xyz in ONE_ARM_OUT_OF_PLANE.items():
         heads[fit.names.index(name)] = torch.tensor(xyz, dtype=torch.float64)
     assert float(fit.arm_plane(heads)) == pytest.approx(0.5)
     heads[fit.names.index("lowerarm01.R")] = torch.tensor((-0.45, 1.15, 0.0), dtype=torch.float64)
@@ -113,15 +117,12 @@ def test_arm_plane_prior_counts_only_reach_out_of_the_frontal_plane():
 def test_arm_plane_prior_fades_as_the_photo_shows_the_body_from_the_side(turn_deg, share):
     """The same arm 45 degrees out of the frontal plane, the body turned about the vertical: from the side the photo
     shows the arm's reach (a walk's swing), so the prior, which only stands in for what a photo cannot show, weighs
-    cos^2 of the turn. Without that it turned side-view bodies 15-35 degrees towards the camera."""
+    cos^2 of the turn. Without that it turned side-view bodies 15-36 degrees towards the camera."""
     fit = AnnyFit()
     turn = np.radians(turn_deg)
     rot = torch.tensor([[np.cos(turn), 0, np.sin(turn)], [0, 1, 0], [-np.sin(turn), 0, np.cos(turn)]])
     heads = torch.zeros(len(fit.names), 3, dtype=torch.float64)
-    for name, xyz in {
-        "upperarm01.L": (0.2, 1.4, 0.0), "upperarm01.R": (-0.2, 1.4, 0.0), "upperleg01.L": (0.1, 0.9, 0.0),
-        "upperleg01.R": (-0.1, 0.9, 0.0), "lowerarm01.L": (0.45, 1.15, 0.0), "lowerarm01.R": (-0.2, 1.1, 0.3),
-    }.items():  # fmt: skip
+    for name, xyz in ONE_ARM_OUT_OF_PLANE.items():
         heads[fit.names.index(name)] = rot @ torch.tensor(xyz, dtype=torch.float64)
     assert float(fit.arm_plane(heads)) == pytest.approx(0.5 * share, abs=1e-9)
 

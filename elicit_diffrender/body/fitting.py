@@ -112,7 +112,7 @@ KNEE_WEIGHT_NOT_STANDING = 1.0  # a photo of someone seated, kneeling or mid-str
 # torso's normal), times the square of the normal's component along the camera's axis. Nothing in one photo says
 # how far an upper arm reaches towards or away from the camera: MediaPipe's metric upper arms were 6-36 degrees off
 # the true ones on six synthetic subjects (0.5-20 with this prior and no metric arms). A photo from the side shows
-# that reach; held there at full weight, the prior turned side-view bodies 19-36 degrees towards the camera (five
+# that reach; held there at full weight, the prior turned side-view bodies 15-36 degrees towards the camera (five
 # multi-photo subjects' side photos).
 ARM_PLANE_WEIGHT = 1.0
 # A standing person (``standing``): each leg's knee at least STANDING_DROP torso lengths below its hip and its ankle

@@ -122,13 +122,11 @@ class Objective:
         normals = vertex_normals(canon.vertices, body.faces)
         light = view.shading(view.normals)
         observed = self.views.observed
-        best, held = source_photos(
-            np.stack([v.seen for v in observed]), np.stack([v.held for v in observed]),
-            np.stack([v.facing for v in observed]),
-        )  # fmt: skip
-        seen = np.any([v.seen for v in observed], axis=0)
+        seen_by, facing_by = np.stack([v.seen for v in observed]), np.stack([v.facing for v in observed])  # (photos, V)
+        best, held = source_photos(seen_by, np.stack([v.held for v in observed]), facing_by)
+        seen = seen_by.any(0)
         colors = np.stack([v.colors for v in observed])[best, np.arange(best.size)]
-        facing = np.where(seen, np.stack([v.facing for v in observed])[best, np.arange(best.size)], view.facing)
+        facing = np.where(seen, facing_by[best, np.arange(best.size)], view.facing)
         pairs = MirrorCompletion.build(
             self.field,
             canon.vertices,
