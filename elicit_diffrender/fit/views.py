@@ -117,7 +117,7 @@ class InputView:
     person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
     labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
     seen: np.ndarray  # (V,) bool: the body vertices the camera sees
-    held: np.ndarray  # (V,) bool: seen vertices within the reach of forearms held in front (no completion source)
+    held: np.ndarray  # (V,) bool: seen vertices within the reach of forearms held in front (no source, no light sample)
     normals: np.ndarray  # (V, 3) the posed body's vertex normals (world)
     shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
     colors: np.ndarray  # (V, 3) the photo's colour at every seen vertex well inside the mask, NaN elsewhere
@@ -146,7 +146,8 @@ class InputView:
         facing = facing_cosine(posed.vertices, normals, full)
         held = within_held_reach(posed.vertices, subject.body.vertex_parts(), facing, full, seen)
         photo, person_full = img.permute(1, 2, 0).numpy(), msk[0].numpy() > 0.5
-        shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen)
+        # What the hands may hold (a folder, a bag) is no sample of the light on the body.
+        shading = estimate_shading(photo, person_full, full, posed.vertices, normals, seen & ~held)
         colors = np.full(posed.vertices.shape, np.nan)
         idx, rgb = seen_colors(photo, person_full, full, posed.vertices, seen)
         colors[idx] = rgb
