@@ -9,10 +9,13 @@ viewer shows) and compared with the volume render of the same pose and camera:
 * colour PSNR over the pixels inside both silhouettes (mesh and volume ``alpha > 0.5``), sRGB;
 * silhouette IoU (the same mesh for every variant).
 
-Variants: vertex colours (``--vertex-colors``); a 1024 texture baked by a point look-up or by a short ray
-along the normal, with and without filling the texels between charts; rays of 1 and 3 voxels besides the
-default's 2; the default (ray, filled) at 512 and 2048 texels. The default, its 512 and 2048 texel sizes
-and the vertex colours are also exported to GLB files with the motion (seconds and bytes on disk).
+Variants: vertex colours (``--vertex-colors``); a 1024 texture baked by a point look-up, by a short ray
+along the normal, or by short rays from views all around (the default), with and without filling the
+texels between charts; rays of 1 and 3 voxels besides the default's 2; the default at 512 and 2048 texels.
+Vertex colours, the normal ray and the default are also scored, at the middle pose, from two camera sets
+that the bakes were not chosen on: four turned 45 degrees, and four 35 degrees above the chest. The
+default, its 512 and 2048 texel sizes and the vertex colours are also exported to GLB files with the
+motion (seconds and bytes on disk).
 Writes ``docs/benchmarks/texture_export.{json,md}`` and a picture per avatar,
 ``docs/benchmarks/texture_export_<avatar>.png``: volume render | vertex colours | texture, at one pose
 from the four sides.
@@ -33,20 +36,28 @@ import torch
 from elicit_diffrender.outputs.texture import Bake
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT = "ray, filled (default)"
+DEFAULT = "views, filled (default)"
+NORMAL = "normal ray, filled"
 VARIANTS = {  # name -> (texture size or None for vertex colours, bake)
     "vertex colours": (None, None),
     "point, no fill": (1024, Bake("point", fill=False)),
     "point, filled": (1024, Bake("point")),
-    "ray, no fill": (1024, Bake("ray", fill=False)),
+    "normal ray, no fill": (1024, Bake("normal", fill=False)),
+    NORMAL: (1024, Bake("normal")),
+    "views, no fill": (1024, Bake(fill=False)),
     DEFAULT: (1024, Bake()),
-    "ray of 1 voxel": (1024, Bake(reach=1.0)),
-    "ray of 3 voxels": (1024, Bake(reach=3.0)),
-    "ray, filled, 512": (512, Bake()),
-    "ray, filled, 2048": (2048, Bake()),
+    "views, rays of 1 voxel": (1024, Bake(reach=1.0)),
+    "views, rays of 3 voxels": (1024, Bake(reach=3.0)),
+    "views, filled, 512": (512, Bake()),
+    "views, filled, 2048": (2048, Bake()),
 }
-EXPORTED = ("vertex colours", DEFAULT, "ray, filled, 512", "ray, filled, 2048")  # also written as GLB files
+EXPORTED = ("vertex colours", DEFAULT, "views, filled, 512", "views, filled, 2048")  # also written as GLB files
 SIDES = (("front", 0.0), ("left", 90.0), ("back", 180.0), ("right", 270.0))
+OTHER_CAMERAS = {  # camera sets the bakes were not chosen on: (azimuth, elevation) in degrees, middle pose
+    "turned 45 degrees": tuple((a, 0.0) for a in (45.0, 135.0, 225.0, 315.0)),
+    "35 degrees above": tuple((a, 35.0) for a in (0.0, 90.0, 180.0, 270.0)),
+}
+CROSS_CHECKED = ("vertex colours", NORMAL, DEFAULT)  # the variants also scored from OTHER_CAMERAS
 
 
 def posed_vertices(avatar, vertices: np.ndarray, joints: np.ndarray, weights: np.ndarray, frame) -> np.ndarray:
@@ -60,8 +71,9 @@ def posed_vertices(avatar, vertices: np.ndarray, joints: np.ndarray, weights: np
     return forward_lbs(v, idx, w, skin.float()).numpy().astype(np.float64)
 
 
-def side_cameras(points: np.ndarray, size: int) -> list:
-    """Four cameras 3 m from the middle of ``points``, at chest height, the body filling 85% of the image."""
+def side_cameras(points: np.ndarray, size: int, views=tuple((deg, 0.0) for _, deg in SIDES)) -> list:
+    """Cameras 3 m from the middle of ``points``, one per (azimuth, elevation) in degrees of ``views`` (default:
+    front, left, back, right at the middle's height), the body filling 85% of the image's height."""
     from elicit_diffrender.core.cameras import look_at
 
     lo, hi = points.min(0), points.max(0)
@@ -69,11 +81,36 @@ def side_cameras(points: np.ndarray, size: int) -> list:
     distance = 3.0
     focal = 0.85 * size * distance / max(hi[1] - lo[1], 1e-3)
     cams = []
-    for name, deg in SIDES:
-        a = np.radians(deg)
-        eye = centre + distance * np.array([np.sin(a), 0.0, np.cos(a)])
-        cams.append(look_at(eye, centre, np.array([0.0, 1.0, 0.0]), focal, size, size, name))
+    for azimuth, elevation in views:
+        a, e = np.radians(azimuth), np.radians(elevation)
+        eye = centre + distance * np.array([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)])
+        cams.append(look_at(eye, centre, np.array([0.0, 1.0, 0.0]), focal, size, size, f"{azimuth:g}/{elevation:g}"))
     return cams
+
+
+def render_scores(avatar, mesh, frame, cams: list, volume: list, spp: int) -> tuple[list, list, list]:
+    """The skinned ``mesh`` at ``frame`` from ``cams`` against the ``volume`` renders: per camera the colour
+    PSNR inside both silhouettes, the silhouette IoU, and the masked mesh render."""
+    from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
+    from elicit_diffrender.outputs.evaluate import psnr
+    from elicit_diffrender.outputs.export import linear_to_srgb
+
+    verts = posed_vertices(avatar, mesh.vertices, mesh.joints, mesh.weights, frame)
+    if mesh.texture is None:
+        look = MeshAppearance(vertex_colors=linear_to_srgb(mesh.colors))
+    else:
+        look = MeshAppearance(uvs=mesh.uvs, texture=mesh.texture.astype(np.float32) / 255)
+    out = MeshRenderer(mesh.faces, look).render(verts, cams, ("color", "alpha"), spp=spp)
+    psnrs, ious, images = [], [], []
+    for c, ref in enumerate(volume):
+        vol_mask = ref["alpha"] > 0.5
+        mesh_mask = out["alpha"][c] > 0.5
+        both = vol_mask & mesh_mask
+        ref_rgb = ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None]
+        psnrs.append(psnr(out["color"][c], ref_rgb, both))
+        ious.append(float(both.sum() / max((vol_mask | mesh_mask).sum(), 1)))
+        images.append(np.clip(out["color"][c] * mesh_mask[..., None], 0, 1))
+    return psnrs, ious, images
 
 
 def contact_sheet(shots: list[tuple[str, int, np.ndarray]], rows: list[str]) -> np.ndarray:
@@ -91,14 +128,27 @@ def contact_sheet(shots: list[tuple[str, int, np.ndarray]], rows: list[str]) -> 
     return np.concatenate(columns, 1)
 
 
+def cross_gains(variants: dict, cameras: str) -> str:
+    """ "normal / views": each bake's PSNR gain over vertex colours from ``cameras`` ("four sides" or a key of
+    ``OTHER_CAMERAS``), in dB."""
+
+    def score(variant: str) -> float:
+        entry = variants[variant]
+        return entry["psnr_db"] if cameras == "four sides" else entry["psnr_other_cameras_db"][cameras]
+
+    base = score("vertex colours")
+    return f"{score(NORMAL) - base:+.2f} / {score(DEFAULT) - base:+.2f}"
+
+
+CAMERA_SETS = ("four sides", *OTHER_CAMERAS)
+
+
 def main() -> int:
     from elicit_diffrender.apps.benchtools import SCAN_CREDITS, machine_info, markdown_table, write_report
     from elicit_diffrender.apps.demo import DEMO_MOTION, run_demo
-    from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
     from elicit_diffrender.data.motions import builtin_motion
     from elicit_diffrender.model.load import load_avatar
-    from elicit_diffrender.outputs.evaluate import psnr
-    from elicit_diffrender.outputs.export import canonical_mesh, export_glb, linear_to_srgb, textured_mesh
+    from elicit_diffrender.outputs.export import canonical_mesh, export_glb, textured_mesh
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", nargs="*", default=[], metavar="NAME=RUN", help="more avatars: a name and a run folder")
@@ -132,29 +182,26 @@ def main() -> int:
             else:
                 export[variant] = {"seconds": bake_seconds, "bytes": None}
         scores = {v: {"psnr": [], "iou": []} for v in VARIANTS}
+        other = {v: {} for v in CROSS_CHECKED}
         sheet = []
         for k, frame in enumerate(frames):
             posed = posed_vertices(avatar, base.vertices, base.joints, base.weights, frame)
             volume_cams = side_cameras(posed, args.size)
             volume = [avatar.render_pose(cam, *frame) for cam in volume_cams]
             for variant, mesh in meshes.items():
-                verts = posed_vertices(avatar, mesh.vertices, mesh.joints, mesh.weights, frame)
-                if mesh.texture is None:
-                    look = MeshAppearance(vertex_colors=linear_to_srgb(mesh.colors))
-                else:
-                    look = MeshAppearance(uvs=mesh.uvs, texture=mesh.texture.astype(np.float32) / 255)
-                out = MeshRenderer(mesh.faces, look).render(verts, volume_cams, ("color", "alpha"), spp=args.spp)
-                for c, ref in enumerate(volume):
-                    vol_mask = ref["alpha"] > 0.5
-                    mesh_mask = out["alpha"][c] > 0.5
-                    both = vol_mask & mesh_mask
-                    ref_rgb = ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None]
-                    scores[variant]["psnr"].append(psnr(out["color"][c], ref_rgb, both))
-                    scores[variant]["iou"].append(float(both.sum() / max((vol_mask | mesh_mask).sum(), 1)))
-                    if k == 1 and variant in ("vertex colours", DEFAULT):
-                        sheet.append((variant, c, np.clip(out["color"][c] * mesh_mask[..., None], 0, 1)))
+                psnrs, ious, images = render_scores(avatar, mesh, frame, volume_cams, volume, args.spp)
+                scores[variant]["psnr"] += psnrs
+                scores[variant]["iou"] += ious
+                if k == 1 and variant in ("vertex colours", DEFAULT):
+                    sheet += [(variant, c, image) for c, image in enumerate(images)]
             if k == 1:
                 sheet = [("volume", c, np.clip(ref["rgb"], 0, 1)) for c, ref in enumerate(volume)] + sheet
+                for cameras, views in OTHER_CAMERAS.items():
+                    cams = side_cameras(posed, args.size, views)
+                    refs = [avatar.render_pose(cam, *frame) for cam in cams]
+                    for variant in CROSS_CHECKED:
+                        psnrs, _, _ = render_scores(avatar, meshes[variant], frame, cams, refs, args.spp)
+                        other[variant][cameras] = float(np.mean(psnrs))
         grid = contact_sheet(sheet, ["volume", "vertex colours", DEFAULT])
         picture = args.out / f"texture_export_{name}.png"
         imageio.imwrite(picture, (grid * 255).round().astype(np.uint8))
@@ -167,6 +214,8 @@ def main() -> int:
                 "silhouette_iou_mean": float(np.mean(scores[variant]["iou"])),
                 **export[variant],
             }
+            if variant in other:
+                entry["psnr_other_cameras_db"] = other[variant]
             per_avatar[name]["variants"][variant] = entry
             poses = " / ".join(f"{v:.2f}" for v in entry["psnr_per_pose_db"])
             rows.append({"avatar": name, "variant": variant, **entry, "psnr_per_pose_db": poses})
@@ -176,6 +225,13 @@ def main() -> int:
         name: data["variants"][DEFAULT]["psnr_db"] - data["variants"]["vertex colours"]["psnr_db"]
         for name, data in per_avatar.items()
     }
+    cross = [
+        {
+            "avatar": name,
+            **{cameras: cross_gains(data["variants"], cameras) for cameras in ("four sides", *OTHER_CAMERAS)},
+        }
+        for name, data in per_avatar.items()
+    ]
     demo_seconds = per_avatar["demo"]["variants"][DEFAULT]["seconds"]
     result = {
         "machine": machine_info(torch.device("cpu")),
@@ -218,6 +274,12 @@ def main() -> int:
         + ", ".join(f"{n} {g:+.2f} dB" for n, g in gains.items())
         + f" (target +2 dB each: {'met' if result['met']['gain'] else 'not met'}). Demo export "
         f"{demo_seconds:.1f} s (target < 30 s).",
+        "",
+        "Gain over vertex colours of the normal ray / of the views bake (default), in dB, from the benchmark's "
+        "four sides (three poses) and from camera sets the bakes were not chosen on (the middle pose; 3 m, "
+        "four azimuths each):",
+        "",
+        markdown_table(cross, [("avatar", "avatar")] + [(c, c) for c in CAMERA_SETS]),
         "",
         "Pictures (middle pose; volume render / vertex colours / baked texture; front, left, back, right): "
         + ", ".join(f"`{d['picture']}`" for d in per_avatar.values()),

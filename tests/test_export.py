@@ -275,3 +275,32 @@ def test_uv_rasteriser_covers_each_texel_once_with_its_barycentrics():
     mask = np.zeros((16, 16), bool)
     mask[half.rows, half.cols] = True
     assert fill_seams(image, mask).min() == 1.0
+
+
+def test_every_bake_kind_gives_back_a_plain_field_colour(exported):
+    """On a field of one colour every bake returns that colour at every surface point: the views bake's
+    weights are normalised, each kind falls back to the point look-up where no ray turns opaque. The views
+    bake's directions are unit vectors spread over the whole sphere."""
+    import copy
+
+    import torch
+
+    from elicit_diffrender.body.template import vertex_normals
+    from elicit_diffrender.outputs.export import canonical_mesh
+    from elicit_diffrender.outputs.texture import BAKE_KINDS, VIEW_DIRECTIONS, Bake, surface_colors
+
+    assert np.allclose(np.linalg.norm(VIEW_DIRECTIONS, axis=1), 1.0)
+    assert (
+        np.linalg.norm(VIEW_DIRECTIONS.mean(0)) < 0.05
+        and (VIEW_DIRECTIONS @ VIEW_DIRECTIONS.T - np.eye(26)).max() < 0.9
+    )
+    avatar = copy.deepcopy(exported[1])
+    mesh = canonical_mesh(avatar)
+    normals = np.array(vertex_normals(mesh.vertices.astype(np.float64), mesh.faces))  # writable, as torch wants
+    fitted = surface_colors(avatar, mesh.vertices, normals)
+    assert fitted.std(0).min() > 0.02  # the fitted avatar is not plain
+    with torch.no_grad():
+        avatar.field.color.fill_(0.3)
+    for kind in BAKE_KINDS:
+        colours = surface_colors(avatar, mesh.vertices, normals, Bake(kind))
+        assert np.allclose(colours, 1 / (1 + np.exp(-0.3)), atol=1e-5), kind

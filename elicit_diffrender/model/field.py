@@ -192,8 +192,10 @@ class CanonicalField(BoxedVolume):
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.density.shape)
 
-    def activated_density(self) -> torch.Tensor:
-        raw = self.density.detach()
+    def activate(self, raw: torch.Tensor) -> torch.Tensor:
+        """Density from raw grid values. The renderer looks the raw grid up first and activates after, so a
+        density between nodes is ``activate(trilinear(raw))``, not the (larger: softplus is convex) trilinear
+        look-up of activated nodes."""
         return F.softplus(raw) if self.activation == "softplus" else torch.relu(raw)
 
     def body_distance(self, vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -245,7 +247,7 @@ class CanonicalField(BoxedVolume):
     def sparsity_loss(self, density: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
         """Cauchy sparsity ``log(1 + 2 sigma^2)`` of a block of the raw density, counted where ``where`` (the same
         block of a mask) is 1."""
-        sigma = F.softplus(density) if self.activation == "softplus" else torch.relu(density)
+        sigma = self.activate(density)
         return (torch.log1p(2 * sigma**2) * where).mean()
 
 

@@ -107,7 +107,7 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     shape = tuple(max(2, int(math.ceil(float(e) / voxel)) + 1) for e in (box[1] - box[0]))
     nodes = grid_points(box, shape).reshape(-1, 3).float()
     with torch.no_grad():
-        sigma = sample_grid(f.activated_density()[None].cpu(), f.box.cpu(), nodes)[:, 0]
+        sigma = f.activate(sample_grid(f.density.detach()[None].cpu(), f.box.cpu(), nodes)[:, 0])
         fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
     volume = (sigma * avatar.foreground(fg)).reshape(shape).double().numpy()
     spacing = tuple(float(box[1, a] - box[0, a]) / (shape[a] - 1) for a in range(3))

@@ -8,12 +8,22 @@
 * Rasterisation: every texel centre inside a triangle in UV space gets that triangle's barycentric
   coordinates ``(b0, b1, b2)``, hence a canonical surface point ``p = sum b_i x_i`` and normal
   ``n = normalize(sum b_i n_i)``.
-* Bake (:class:`Bake`; ``"ray"``, the default): the colour the volume renderer composites along a short
-  ray that crosses the surface against its normal, from ``p + L n`` to ``p - L n`` (``L = reach`` voxels,
-  ``RAY_SAMPLES`` samples), with the renderer's ``alpha_k = fg_k (1 - exp(-sigma_k delta / voxel))``,
-  ``T_k = prod_{j<k} (1 - alpha_j)``, ``c = sum T_k alpha_k c_k / sum T_k alpha_k``. A texel whose ray
-  stays nearly transparent (``sum < MIN_RAY_ALPHA``) takes the point look-up. ``"point"``: the colour
-  grid at ``p`` (what the vertex colours sample, per texel).
+* Bake (:class:`Bake`): a texel's colour is what the volume renderer composites along short rays that
+  cross the surface at ``p``: each ray runs from ``p + L d`` to ``p - L d`` (``L = reach`` voxels,
+  ``RAY_SAMPLES`` samples) with the renderer's ``alpha_k = fg_k (1 - exp(-sigma_k delta / voxel))``,
+  ``T_k = prod_{j<k} (1 - alpha_j)``, ``c(d) = sum T_k alpha_k c_k / sum T_k alpha_k``, and its density:
+  ``sigma_k = activate(trilinear(raw)(x_k))``, the raw grid looked up first (looking up activated nodes
+  puts more density between nodes, so rays stop short of where the renderer's do).
+
+  - ``"views"`` (the default): the mean over ``VIEW_DIRECTIONS`` (evenly spread over the sphere) that face
+    the surface, ``c = sum w_d c(d) / sum w_d`` with ``w_d = (n . d)^VIEW_POWER``: the colour that views
+    from all around see at ``p`` (a camera sees a texel over an area ``~ n . d``; the square favours the
+    views that see it squarely, whose composite is sharpest).
+  - ``"normal"``: one ray along the normal, ``d = n``.
+  - ``"point"``: the colour grid at ``p`` (what the vertex colours sample, per texel).
+
+  A ray that stays nearly transparent (``sum T_k alpha_k < MIN_RAY_ALPHA``) counts for nothing; a texel with
+  no opaque ray takes the point look-up.
 * Seams (``fill``): texels outside every chart take the colour of the nearest texel inside one (a
   Euclidean distance transform), so bilinear filtering and mip-maps at a chart's border read that
   chart's colours, not the empty background.
@@ -25,6 +35,7 @@ Colours stay as the field holds them, sRGB-encoded, which is what glTF's ``baseC
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,24 +47,39 @@ from ..model.avatar import Avatar, sample_grid
 ATLAS_PADDING = 4  # texels between charts in the packed atlas
 RAY_SAMPLES = 16
 MIN_RAY_ALPHA = 0.05
-CHUNK = 1 << 16  # texels per look-up batch (the motion weights have one channel per bone)
+VIEW_COUNT = 26  # directions of the "views" bake, evenly spread over the sphere
+VIEW_POWER = 2.0  # weight of a direction: (n . d) to this power, for directions that face the surface
+MIN_FACING = 0.05  # n . d below this: the direction sees the texel edge-on and is left out
+BAKE_KINDS = ("views", "normal", "point")
+CHUNK = 1 << 16  # texels per look-up batch
 
 
 @dataclass(frozen=True)
 class Bake:
-    """How texels take their colour: ``kind`` "ray" or "point", the ray's half length ``reach`` in voxels,
-    and whether to ``fill`` the texels between charts."""
+    """How texels take their colour: ``kind`` (one of ``BAKE_KINDS``, see the module docstring), the rays'
+    half length ``reach`` in voxels, and whether to ``fill`` the texels between charts."""
 
-    kind: str = "ray"
+    kind: str = "views"
     reach: float = 2.0
     fill: bool = True
 
     def __post_init__(self) -> None:
-        if self.kind not in ("ray", "point"):
-            raise ValueError(f"bake kind must be 'ray' or 'point', got {self.kind!r}")
+        if self.kind not in BAKE_KINDS:
+            raise ValueError(f"bake kind must be one of {BAKE_KINDS}, got {self.kind!r}")
 
 
 DEFAULT_BAKE = Bake()
+
+
+def sphere_directions(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice, y up)."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1 - 2 * i / count)
+    azimuth = math.pi * (1 + math.sqrt(5)) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.cos(polar), np.sin(azimuth) * np.sin(polar)], 1)
+
+
+VIEW_DIRECTIONS = sphere_directions(VIEW_COUNT)
 
 
 @dataclass
@@ -113,38 +139,71 @@ def rasterize_uv(uvs: np.ndarray, faces: np.ndarray, size: int) -> TexelSamples:
     return TexelSamples(rows[inside], cols[inside], face[inside], bary[inside])
 
 
+@dataclass
+class _Grids:
+    """The avatar's grids on the host, as a bake reads them."""
+
+    box: torch.Tensor
+    color: torch.Tensor  # (3, X, Y, Z) pre-sigmoid
+    raw_density: torch.Tensor  # (1, X, Y, Z) looked up, then activated (as the renderer does)
+    summed_weights: torch.Tensor  # (1, X', Y', Z') the bones' weights summed (trilinear look-up is linear)
+    weights_box: torch.Tensor
+    voxel: float
+
+
+def _composite(avatar: Avatar, grids: _Grids, points: torch.Tensor, dirs: torch.Tensor, reach: float):
+    """Colour ``c(d)`` and opacity ``sum T_k alpha_k`` of the short rays through ``points`` along ``dirs``."""
+    t = torch.linspace(reach, -reach, RAY_SAMPLES)  # from outside in
+    delta = 2 * reach / (RAY_SAMPLES - 1)
+    x = (points[:, None, :] + t[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    sigma = avatar.field.activate(sample_grid(grids.raw_density, grids.box, x)[:, 0])
+    fg = avatar.foreground(sample_grid(grids.summed_weights, grids.weights_box, x)[:, 0])
+    alpha = (fg * (1 - torch.exp(-sigma * delta / grids.voxel))).reshape(len(points), RAY_SAMPLES)
+    trans = torch.cumprod(torch.cat([torch.ones(len(points), 1), 1 - alpha[:, :-1]], 1), 1)
+    w = trans * alpha
+    rgb = torch.sigmoid(sample_grid(grids.color, grids.box, x)).reshape(len(points), RAY_SAMPLES, 3)
+    total = w.sum(1, keepdim=True)
+    return (w[..., None] * rgb).sum(1) / total.clamp(min=1e-6), total
+
+
 @torch.no_grad()
 def surface_colors(avatar: Avatar, points: np.ndarray, normals: np.ndarray, bake: Bake = DEFAULT_BAKE) -> np.ndarray:
     """(N, 3) sRGB colours in [0, 1] of canonical surface ``points`` with outward unit ``normals`` (see the
-    module docstring for the two kinds of ``bake``)."""
+    module docstring for the kinds of ``bake``)."""
     f = avatar.field
-    box = f.box.detach().cpu()
-    color = f.color.detach().permute(3, 0, 1, 2).cpu()
-    density = f.activated_density()[None].detach().cpu()
-    weights = avatar.motion_weights().detach().cpu()
-    weights_box = avatar.motion_weights.box.cpu()
-    voxel = float(f.voxel_size)
-    reach = bake.reach * voxel
-    t = torch.linspace(reach, -reach, RAY_SAMPLES)  # from outside in
-    delta = 2 * reach / (RAY_SAMPLES - 1)
+    grids = _Grids(
+        box=f.box.detach().cpu(),
+        color=f.color.detach().permute(3, 0, 1, 2).cpu(),
+        raw_density=f.density.detach()[None].cpu(),
+        summed_weights=avatar.motion_weights().detach().cpu().sum(0, keepdim=True),
+        weights_box=avatar.motion_weights.box.cpu(),
+        voxel=float(f.voxel_size),
+    )
+    reach = bake.reach * grids.voxel
+    directions = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32)
     out = np.empty((len(points), 3), dtype=np.float32)
     for s in range(0, len(points), CHUNK):
         p = torch.as_tensor(points[s : s + CHUNK], dtype=torch.float32)
-        point_rgb = torch.sigmoid(sample_grid(color, box, p))
+        point_rgb = torch.sigmoid(sample_grid(grids.color, grids.box, p))
         if bake.kind == "point":
             out[s : s + CHUNK] = point_rgb.numpy()
             continue
         n = torch.as_tensor(normals[s : s + CHUNK], dtype=torch.float32)
-        x = (p[:, None, :] + t[None, :, None] * n[:, None, :]).reshape(-1, 3)
-        sigma = sample_grid(density, box, x)[:, 0]
-        fg = avatar.foreground(sample_grid(weights, weights_box, x).sum(1))
-        alpha = (fg * (1 - torch.exp(-sigma * delta / voxel))).reshape(len(p), RAY_SAMPLES)
-        trans = torch.cumprod(torch.cat([torch.ones(len(p), 1), 1 - alpha[:, :-1]], 1), 1)
-        w = trans * alpha
-        rgb = (w[..., None] * torch.sigmoid(sample_grid(color, box, x)).reshape(len(p), RAY_SAMPLES, 3)).sum(1)
-        total = w.sum(1, keepdim=True)
-        ray_rgb = rgb / total.clamp(min=1e-6)
-        out[s : s + CHUNK] = torch.where(total >= MIN_RAY_ALPHA, ray_rgb, point_rgb).numpy()
+        if bake.kind == "normal":
+            rgb, total = _composite(avatar, grids, p, n, reach)
+            out[s : s + CHUNK] = torch.where(total >= MIN_RAY_ALPHA, rgb, point_rgb).numpy()
+            continue
+        acc, weight = torch.zeros(len(p), 3), torch.zeros(len(p), 1)
+        for d in directions:
+            facing = n @ d
+            rows = torch.nonzero(facing > MIN_FACING)[:, 0]
+            if not len(rows):
+                continue
+            rgb, total = _composite(avatar, grids, p[rows], d.expand(len(rows), 3), reach)
+            w = facing[rows, None] ** VIEW_POWER * (total >= MIN_RAY_ALPHA)
+            acc.index_add_(0, rows, w * rgb)
+            weight.index_add_(0, rows, w)
+        out[s : s + CHUNK] = torch.where(weight > 0, acc / weight.clamp(min=1e-12), point_rgb).numpy()
     return out
 
 
