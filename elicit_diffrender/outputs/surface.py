@@ -133,13 +133,12 @@ def sparse_fuzz(volume: np.ndarray, core: np.ndarray, spacing: tuple[float, floa
     out = np.zeros(volume.size)
     if not len(at):
         return out.reshape(volume.shape)
-    depth = np.stack([t for t in line_depths(volume, spacing, voxel, LINE_DIRECTIONS, at)]).astype(np.float32)
-    core_mass = grown.astype(np.float64)
-    for k, hits in enumerate(line_depths(core_mass, spacing, voxel, LINE_DIRECTIONS, at)):
-        depth[k, hits >= 0.5] = np.nan  # this line passes through the core
-    free = ~np.isnan(depth)
+    depth = np.stack(list(line_depths(volume, spacing, voxel, LINE_DIRECTIONS, at))).astype(np.float32)
+    core_nodes = grown.astype(np.float64)  # a line's "depth" through it: how many core nodes it meets
+    for k, met in enumerate(line_depths(core_nodes, spacing, voxel, LINE_DIRECTIONS, at)):
+        depth[k, met >= 0.5] = np.nan  # this line passes through the core: not this term's to decide
     median = np.zeros(len(at))
-    some = free.any(0)
+    some = ~np.isnan(depth).all(0)  # nodes with at least one line that misses the core
     if some.any():
         median[some] = np.nanmedian(depth[:, some], axis=0)
     out[at] = np.minimum(volume.reshape(-1)[at] / SPARSE_DENSITY, median / HALF_OPAQUE)
