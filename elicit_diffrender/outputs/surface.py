@@ -116,31 +116,28 @@ def line_depths(
         yield values
 
 
-def line_depth(
-    volume: np.ndarray, spacing: tuple[float, float, float], voxel: float, directions: np.ndarray
+def sparse_fuzz(
+    volume: np.ndarray,
+    grown_core: np.ndarray,
+    at: np.ndarray,
+    depths: np.ndarray,
+    spacing: tuple[float, float, float],
+    voxel: float,
 ) -> np.ndarray:
-    """Per node, the smallest optical depth of the whole line through it over ``directions``."""
-    best = np.full(volume.size, np.inf)
-    for depth in line_depths(volume, spacing, voxel, directions, np.arange(volume.size)):
-        best = np.minimum(best, depth)
-    return best.reshape(volume.shape)
-
-
-def sparse_fuzz(volume: np.ndarray, core: np.ndarray, spacing: tuple[float, float, float], voxel: float) -> np.ndarray:
-    """Per node, the sparse fuzz term (see the module docstring), 0 on the grown ``core`` (bool, per node)."""
-    grown = binary_dilation(core, iterations=CORE_MARGIN)
-    at = np.flatnonzero(~grown & (volume > 1e-4))
+    """Per node, the sparse fuzz term (see the module docstring): ``grown_core`` (bool, per node) the core grown
+    by ``CORE_MARGIN``, ``at`` the flat index of the nodes outside it that hold density, ``depths`` (directions,
+    nodes of ``at``) their lines' optical depths over ``LINE_DIRECTIONS``; 0 elsewhere."""
     out = np.zeros(volume.size)
     if not len(at):
         return out.reshape(volume.shape)
-    depth = np.stack(list(line_depths(volume, spacing, voxel, LINE_DIRECTIONS, at))).astype(np.float32)
-    core_nodes = grown.astype(np.float64)  # a line's "depth" through it: how many core nodes it meets
+    depths = depths.copy()
+    core_nodes = grown_core.astype(np.float64)  # a line's "depth" through it: how many core nodes it meets
     for k, met in enumerate(line_depths(core_nodes, spacing, voxel, LINE_DIRECTIONS, at)):
-        depth[k, met >= 0.5] = np.nan  # this line passes through the core: not this term's to decide
+        depths[k, met >= 0.5] = np.nan  # this line passes through the core: not this term's to decide
     median = np.zeros(len(at))
-    some = ~np.isnan(depth).all(0)  # nodes with at least one line that misses the core
+    some = ~np.isnan(depths).all(0)  # nodes with at least one line that misses the core
     if some.any():
-        median[some] = np.nanmedian(depth[:, some], axis=0)
+        median[some] = np.nanmedian(depths[:, some], axis=0)
     out[at] = np.minimum(volume.reshape(-1)[at] / SPARSE_DENSITY, median / HALF_OPAQUE)
     return out.reshape(volume.shape)
 
@@ -150,5 +147,14 @@ def surface_field(volume: np.ndarray, spacing: tuple[float, float, float], voxel
     (foreground included) at nodes ``spacing`` metres apart, ``voxel`` the density's voxel in metres."""
     steps = tuple(float(s) / voxel for s in spacing)
     median_depth = depth_from_outside(volume, steps) / HALF_OPAQUE
-    fuzz = np.minimum(volume / FUZZ_DENSITY, line_depth(volume, spacing, voxel, LINE_DIRECTIONS) / FUZZ_DEPTH)
-    return np.maximum(np.maximum(median_depth, fuzz), sparse_fuzz(volume, median_depth >= 1, spacing, voxel))
+    grown_core = binary_dilation(median_depth >= 1, iterations=CORE_MARGIN)
+    sparse_at = np.flatnonzero(~grown_core & (volume > 1e-4))
+    # One pass over the lines serves both fuzz terms: the smallest depth per node, all depths at sparse_at.
+    smallest = np.full(volume.size, np.inf)
+    sparse_depths = np.empty((len(LINE_DIRECTIONS), len(sparse_at)), dtype=np.float32)
+    for k, depth in enumerate(line_depths(volume, spacing, voxel, LINE_DIRECTIONS, np.arange(volume.size))):
+        smallest = np.minimum(smallest, depth)
+        sparse_depths[k] = depth[sparse_at]
+    fuzz = np.minimum(volume / FUZZ_DENSITY, smallest.reshape(volume.shape) / FUZZ_DEPTH)
+    sparse = sparse_fuzz(volume, grown_core, sparse_at, sparse_depths, spacing, voxel)
+    return np.maximum(np.maximum(median_depth, fuzz), sparse)
