@@ -9,6 +9,8 @@ the Warp ray marcher.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,30 @@ def sample_grid(volume: torch.Tensor, box: torch.Tensor, points: torch.Tensor) -
         align_corners=True,
     )
     return out.reshape(volume.shape[0], -1).T
+
+
+@dataclass
+class CanonicalLookup:
+    """A host copy of the avatar's canonical grids, looked up as the renderer looks them up: the raw density
+    trilinearly, then activated; the foreground from the bones' summed weights (one channel: a trilinear
+    look-up is linear); the colour logits, then the sigmoid. Made by :meth:`Avatar.canonical_lookup`."""
+
+    box: torch.Tensor
+    raw_density: torch.Tensor  # (1, X, Y, Z)
+    color_logits: torch.Tensor  # (3, X, Y, Z)
+    summed_weights: torch.Tensor  # (1, X', Y', Z')
+    weights_box: torch.Tensor
+    activate: Callable[[torch.Tensor], torch.Tensor]
+    foreground: Callable[[torch.Tensor], torch.Tensor]
+
+    def density(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,) density ``sigma`` and (N,) foreground likelihood ``fg`` at (N, 3) canonical points."""
+        sigma = self.activate(sample_grid(self.raw_density, self.box, points)[:, 0])
+        return sigma, self.foreground(sample_grid(self.summed_weights, self.weights_box, points)[:, 0])
+
+    def srgb(self, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) sRGB colour in [0, 1] at (N, 3) canonical points."""
+        return torch.sigmoid(sample_grid(self.color_logits, self.box, points))
 
 
 class Avatar(nn.Module):
@@ -162,6 +188,20 @@ class Avatar(nn.Module):
         """The foreground likelihood of points whose bone weights sum to ``summed_weights``: the room's share
         scaled back to 1, and clamped there (bones whose candidates both carry weight must not add up past 1)."""
         return (summed_weights / self.room_weight).clamp(max=1.0)
+
+    @torch.no_grad()
+    def canonical_lookup(self) -> CanonicalLookup:
+        """The canonical grids on the host, for look-ups outside the renderer (mesh, texture)."""
+        f = self.field
+        return CanonicalLookup(
+            box=f.box.detach().cpu(),
+            raw_density=f.density.detach()[None].cpu(),
+            color_logits=f.color.detach().permute(3, 0, 1, 2).cpu(),
+            summed_weights=self.motion_weights().detach().cpu().sum(0, keepdim=True),
+            weights_box=self.motion_weights.box.cpu(),
+            activate=f.activate,
+            foreground=self.foreground,
+        )
 
     @property
     def device(self) -> torch.device:

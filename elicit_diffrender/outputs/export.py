@@ -106,10 +106,10 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     voxel = float(resolution or f.voxel_size)
     shape = tuple(max(2, int(math.ceil(float(e) / voxel)) + 1) for e in (box[1] - box[0]))
     nodes = grid_points(box, shape).reshape(-1, 3).float()
+    grids = avatar.canonical_lookup()
     with torch.no_grad():
-        sigma = f.activate(sample_grid(f.density.detach()[None].cpu(), f.box.cpu(), nodes)[:, 0])
-        fg = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), nodes).sum(1)
-    volume = (sigma * avatar.foreground(fg)).reshape(shape).double().numpy()
+        sigma, fg = grids.density(nodes)
+    volume = (sigma * fg).reshape(shape).double().numpy()
     spacing = tuple(float(box[1, a] - box[0, a]) / (shape[a] - 1) for a in range(3))
     field = surface_field(volume, spacing, float(f.voxel_size))
     if field.max() <= 1.0:
@@ -131,7 +131,7 @@ def canonical_mesh(avatar: Avatar, resolution: float | None = None, faces: int |
     mesh.remove_unreferenced_vertices()
     v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     with torch.no_grad():
-        srgb = torch.sigmoid(sample_grid(f.color.detach().permute(3, 0, 1, 2).cpu(), f.box.cpu(), v)).numpy()
+        srgb = grids.srgb(v).numpy()
         w = sample_grid(avatar.motion_weights().detach().cpu(), avatar.motion_weights.box.cpu(), v).numpy()
     colors = srgb_to_linear(srgb)
     top = np.argsort(-w, axis=1)[:, :MAX_JOINTS_PER_VERTEX]

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from scipy.ndimage import distance_transform_edt
 
-from ..model.avatar import Avatar, sample_grid
+from ..model.avatar import Avatar, CanonicalLookup
 
 ATLAS_PADDING = 4  # texels between charts in the packed atlas
 RAY_SAMPLES = 16
@@ -139,29 +139,16 @@ def rasterize_uv(uvs: np.ndarray, faces: np.ndarray, size: int) -> TexelSamples:
     return TexelSamples(rows[inside], cols[inside], face[inside], bary[inside])
 
 
-@dataclass
-class _Grids:
-    """The avatar's grids on the host, as a bake reads them."""
-
-    box: torch.Tensor
-    color: torch.Tensor  # (3, X, Y, Z) pre-sigmoid
-    raw_density: torch.Tensor  # (1, X, Y, Z) looked up, then activated (as the renderer does)
-    summed_weights: torch.Tensor  # (1, X', Y', Z') the bones' weights summed (trilinear look-up is linear)
-    weights_box: torch.Tensor
-    voxel: float
-
-
-def _composite(avatar: Avatar, grids: _Grids, points: torch.Tensor, dirs: torch.Tensor, reach: float):
+def _composite(grids: CanonicalLookup, voxel: float, points: torch.Tensor, dirs: torch.Tensor, reach: float):
     """Colour ``c(d)`` and opacity ``sum T_k alpha_k`` of the short rays through ``points`` along ``dirs``."""
     t = torch.linspace(reach, -reach, RAY_SAMPLES)  # from outside in
     delta = 2 * reach / (RAY_SAMPLES - 1)
     x = (points[:, None, :] + t[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
-    sigma = avatar.field.activate(sample_grid(grids.raw_density, grids.box, x)[:, 0])
-    fg = avatar.foreground(sample_grid(grids.summed_weights, grids.weights_box, x)[:, 0])
-    alpha = (fg * (1 - torch.exp(-sigma * delta / grids.voxel))).reshape(len(points), RAY_SAMPLES)
+    sigma, fg = grids.density(x)
+    alpha = (fg * (1 - torch.exp(-sigma * delta / voxel))).reshape(len(points), RAY_SAMPLES)
     trans = torch.cumprod(torch.cat([torch.ones(len(points), 1), 1 - alpha[:, :-1]], 1), 1)
     w = trans * alpha
-    rgb = torch.sigmoid(sample_grid(grids.color, grids.box, x)).reshape(len(points), RAY_SAMPLES, 3)
+    rgb = grids.srgb(x).reshape(len(points), RAY_SAMPLES, 3)
     total = w.sum(1, keepdim=True)
     return (w[..., None] * rgb).sum(1) / total.clamp(min=1e-6), total
 
@@ -170,27 +157,20 @@ def _composite(avatar: Avatar, grids: _Grids, points: torch.Tensor, dirs: torch.
 def surface_colors(avatar: Avatar, points: np.ndarray, normals: np.ndarray, bake: Bake = DEFAULT_BAKE) -> np.ndarray:
     """(N, 3) sRGB colours in [0, 1] of canonical surface ``points`` with outward unit ``normals`` (see the
     module docstring for the kinds of ``bake``)."""
-    f = avatar.field
-    grids = _Grids(
-        box=f.box.detach().cpu(),
-        color=f.color.detach().permute(3, 0, 1, 2).cpu(),
-        raw_density=f.density.detach()[None].cpu(),
-        summed_weights=avatar.motion_weights().detach().cpu().sum(0, keepdim=True),
-        weights_box=avatar.motion_weights.box.cpu(),
-        voxel=float(f.voxel_size),
-    )
-    reach = bake.reach * grids.voxel
+    grids = avatar.canonical_lookup()
+    voxel = float(avatar.field.voxel_size)
+    reach = bake.reach * voxel
     directions = torch.as_tensor(VIEW_DIRECTIONS, dtype=torch.float32)
     out = np.empty((len(points), 3), dtype=np.float32)
     for s in range(0, len(points), CHUNK):
         p = torch.as_tensor(points[s : s + CHUNK], dtype=torch.float32)
-        point_rgb = torch.sigmoid(sample_grid(grids.color, grids.box, p))
+        point_rgb = grids.srgb(p)
         if bake.kind == "point":
             out[s : s + CHUNK] = point_rgb.numpy()
             continue
         n = torch.as_tensor(normals[s : s + CHUNK], dtype=torch.float32)
         if bake.kind == "normal":
-            rgb, total = _composite(avatar, grids, p, n, reach)
+            rgb, total = _composite(grids, voxel, p, n, reach)
             out[s : s + CHUNK] = torch.where(total >= MIN_RAY_ALPHA, rgb, point_rgb).numpy()
             continue
         acc, weight = torch.zeros(len(p), 3), torch.zeros(len(p), 1)
@@ -199,7 +179,7 @@ def surface_colors(avatar: Avatar, points: np.ndarray, normals: np.ndarray, bake
             rows = torch.nonzero(facing > MIN_FACING)[:, 0]
             if not len(rows):
                 continue
-            rgb, total = _composite(avatar, grids, p[rows], d.expand(len(rows), 3), reach)
+            rgb, total = _composite(grids, voxel, p[rows], d.expand(len(rows), 3), reach)
             w = facing[rows, None] ** VIEW_POWER * (total >= MIN_RAY_ALPHA)
             acc.index_add_(0, rows, w * rgb)
             weight.index_add_(0, rows, w)
