@@ -129,8 +129,8 @@ def contact_sheet(shots: list[tuple[str, int, np.ndarray]], rows: list[str]) -> 
 
 
 def cross_gains(variants: dict, cameras: str) -> str:
-    """ "normal / views": each bake's PSNR gain over vertex colours from ``cameras`` ("four sides" or a key of
-    ``OTHER_CAMERAS``), in dB."""
+    """The table cell "normal / views": each bake's PSNR gain over vertex colours from ``cameras`` (one of
+    ``CAMERA_SETS``), in dB."""
 
     def score(variant: str) -> float:
         entry = variants[variant]
@@ -228,7 +228,7 @@ def main() -> int:
     cross = [
         {
             "avatar": name,
-            **{cameras: cross_gains(data["variants"], cameras) for cameras in ("four sides", *OTHER_CAMERAS)},
+            **{cameras: cross_gains(data["variants"], cameras) for cameras in CAMERA_SETS},
         }
         for name, data in per_avatar.items()
     ]
