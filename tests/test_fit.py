@@ -352,6 +352,32 @@ def test_tiny_fit_improves_the_input_view(tmp_path, tiny_subject):
     assert after_fit > after_init + 2.0, (after_init, after_fit)
 
 
+def test_a_photo_patch_leaves_the_colour_behind_the_body_to_the_completion(tmp_path, tiny_subject):
+    """Through a see-through avatar a photo's rays reach the back; the completed cells behind the body take no colour
+    gradient from them, while the completion's own term still reaches those cells."""
+    cfg = make_config("cpu-fast", None, TINY + ["encoder=mirror"])
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    objective, field = trainer.objective, trainer.avatar.field
+    behind = objective.behind
+    assert behind is not None and 0 < behind.numel() < len(objective.completion)
+    assert torch.isin(behind, objective.completion.cells).all()
+    trainer.start_stage_2()
+    with torch.no_grad():
+        field.density.fill_(-3.0)  # nearly transparent: every ray crosses the whole body
+    reached = torch.zeros(field.color.shape[:-1], dtype=torch.bool).reshape(-1)
+    for _ in range(6):
+        field.color.grad = None
+        objective.backward(objective.total(objective.input_patch()))
+        grad = field.color.grad.reshape(-1, 3).abs().sum(1)
+        assert grad[behind].max() == 0
+        reached |= (grad > 0).cpu()
+    assert reached.any()
+    field.color.grad = None  # the completion's term does reach them
+    terms = objective.regularisers(2, 0)
+    objective.backward(objective.total(terms))
+    assert field.color.grad.reshape(-1, 3)[behind].abs().sum() > 0
+
+
 def test_a_fit_trains_when_the_caller_turned_gradients_off(tmp_path, tiny_subject):
     """A script that renders under ``torch.set_grad_enabled(False)`` may still fit (bench_texture_export's demo)."""
     cfg = make_config("cpu-fast", None, TINY + ["init_steps=3", "steps=3"])

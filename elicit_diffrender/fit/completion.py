@@ -44,6 +44,7 @@ from ..core.cameras import Camera
 from ..model.field import CanonicalField, grid_axes, nearest, node_points
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
+BEHIND_DEPTH = 0.10  # metres: a cell this far behind the visible surface is past any misfit of body and avatar
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
 BLUR_VOXELS = 1.5  # spacing of the blur stencil at the source
 NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they copy their crown
@@ -104,6 +105,19 @@ def visible_vertices(
     d = depth[v, u]
     seen[inside] = person[v, u] & (d > 0) & (z[inside] <= d + DEPTH_TOLERANCE)
     return seen & facing
+
+
+def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, margin: float = BEHIND_DEPTH) -> np.ndarray:
+    """(P,) bool: posed ``points`` that lie more than ``margin`` behind the body's surface in ``camera`` (its (H, W)
+    z-``depth``, 0 = none): what the camera's photo shows there lies in front of them."""
+    uv, z = camera.project(points)
+    h, w = depth.shape
+    px = np.floor(uv).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
+    behind = np.zeros(len(points), dtype=bool)
+    d = depth[px[inside, 1], px[inside, 0]]
+    behind[inside] = (d > 0) & (z[inside] > d + margin)
+    return behind
 
 
 def within_held_reach(

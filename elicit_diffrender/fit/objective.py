@@ -23,14 +23,15 @@ from ..body import BodyModel
 from ..body.template import vertex_normals
 from ..core.host_reads import on_host
 from ..model.encoders import FALLBACK_NAME, EncoderError, load_encoder
-from ..model.field import CanonicalField
+from ..model.field import CanonicalField, grid_axes, node_points
 from ..model.losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..model.total_variation import total_variation
-from .completion import MirrorCompletion
+from .completion import MirrorCompletion, behind_body
 from .config import FitConfig
 from .hybrid_sampling import NovelView, crop_window, part_pixels, plan_novel_view
 from .regions import GradRegions
 from .render import PoseRenderer
+from .room import canonical_to_pose
 from .streams import RandomStreams
 from .views import FitViews, crop_image, min_part_pixels, random_patch
 
@@ -94,6 +95,10 @@ class Objective:
         self.field = renderer.avatar.field
         self.weights = {name: float(getattr(cfg, key)) for name, key in TERMS.items()}
         self.encoder, self.encoder_info, self.completion = None, None, None
+        # The completed cells that lie behind the body in every observed photo. A photo's patch could still reach
+        # them through a thin or carved front (beside held hands: the folder's colour on the back), so photo
+        # steps leave their colour to the completion.
+        self.behind: torch.Tensor | None = None
         if self.on("semantic") or self.on("text"):
             self.encoder, self.encoder_info = load_encoder(cfg.encoder, cfg.clip_model, cfg.clip_pretrained)
             if self.encoder is not None:
@@ -103,6 +108,13 @@ class Objective:
                 raise EncoderError(f"text_prompt needs CLIP weights; the semantic prior here is {FALLBACK_NAME}")
             if self.on("semantic") and self.on("mirror"):
                 self.completion = self._mirror_completion(body, body_sdf, cfg.box_margin, garment)
+                self.behind = self._behind_every_photo(body, self.completion.cells)
+                log.info(
+                    "%d of the %d completed cells lie behind the body in every photo: photo patches leave their "
+                    "colour alone",
+                    self.behind.numel(),
+                    len(self.completion),
+                )
         self.text_embedding = None
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
@@ -110,6 +122,7 @@ class Objective:
         self.outside_body = outside_body(body_sdf, self.field, self.device, garment) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
         self.regions = GradRegions()  # the grid regions the step's regularisers read
+        self.photo_step = False  # this step reconstructs a patch of an input photo
 
     def _mirror_completion(
         self, body: BodyModel, body_sdf: np.ndarray, margin: float, garment: np.ndarray | None
@@ -157,6 +170,17 @@ class Objective:
             np.round(view.shading.direction, 2).tolist(),
         )
         return pairs
+
+    def _behind_every_photo(self, body: BodyModel, cells: torch.Tensor) -> torch.Tensor:
+        """Those of the colour grid's ``cells`` (flat indices) whose place in every observed photo's pose lies behind
+        the body's surface in that photo (:func:`behind_body`)."""
+        index = cells.cpu().numpy()
+        axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
+        points = node_points(axes, np.unravel_index(index, self.field.shape))
+        behind = np.ones(len(index), dtype=bool)
+        for view in self.views.observed:
+            behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth)
+        return torch.as_tensor(index[behind], dtype=torch.long, device=self.device)
 
     def on(self, name: str) -> bool:
         return self.weights[name] > 0
@@ -216,6 +240,7 @@ class Objective:
         target = view.image[:, y0 : y0 + size, x0 : x0 + size] * m + bg[:, None, None] * (1 - m)
         if view is not observed[0]:  # another photo gives colour, not outline: its placement is less sure
             target = m * target + (1 - m) * out["rgb"][0].detach()
+        self.photo_step = True
         return self._reconstruction(out["rgb"], target[None])
 
     def novel_view(self) -> Terms | None:
@@ -305,6 +330,10 @@ class Objective:
         return terms
 
     def backward(self, loss: torch.Tensor) -> None:
-        """Gradients of the step's ``loss`` (:meth:`total`) in every parameter's ``.grad``."""
+        """Gradients of the step's ``loss`` (:meth:`total`) in every parameter's ``.grad``. A photo's patch leaves
+        the colour of the completed cells behind the body alone (:attr:`behind`)."""
         loss.backward()
+        if self.photo_step and self.behind is not None and self.field.color.grad is not None:
+            self.field.color.grad.view(-1, 3).index_fill_(0, self.behind, 0.0)
+        self.photo_step = False
         self.regions.add_gradients()

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..body import PART_NAMES
+from ..body import PART_NAMES, BodyModel, PosedBody
 from ..body.template import vertex_normals
 from ..core.cameras import Camera
 from ..data.mesh_render import MeshRenderer
@@ -65,17 +65,10 @@ class InputFrame:
         person = ndimage.zoom(person, (cam.height / person.shape[0], cam.width / person.shape[1]), order=1) > 0.5
         labels = MeshRenderer(body.faces, face_labels=body.face_parts()).render(posed.vertices, [cam], ("labels",))
         canon = body.pose(body.canonical_pose())
-        can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
-        weights = body.reduced_weights()
-
-        def to_input_pose(points: np.ndarray) -> np.ndarray:
-            w = splat_weights(points, canon.vertices, weights)
-            return np.einsum("pb,bij,pj->pi", w, can_to_obs[:, :3, :3], points) + w @ can_to_obs[:, :3, 3]
-
         normals = vertex_normals(canon.vertices, body.faces)
         return cls(
             cam, person, labels["labels"][0], posed.vertices, canon.vertices, normals, body.vertex_parts(),
-            to_input_pose,
+            canonical_to_pose(body, posed),
         )  # fmt: skip
 
     def in_mask(self, points: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -88,6 +81,20 @@ class InputFrame:
         hit = np.zeros(len(points), dtype=bool)
         hit[ok] = inside[px[ok, 1], px[ok, 0]]
         return hit
+
+
+def canonical_to_pose(body: BodyModel, posed: PosedBody) -> Callable[[np.ndarray], np.ndarray]:
+    """The map of canonical points (P, 3) to their place in ``posed``: the body's own skinning, each point with the
+    blend of its nearest vertices' weights (:func:`splat_weights`)."""
+    canon = body.pose(body.canonical_pose())
+    can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
+    weights = body.reduced_weights()
+
+    def to_pose(points: np.ndarray) -> np.ndarray:
+        w = splat_weights(points, canon.vertices, weights)
+        return np.einsum("pb,bij,pj->pi", w, can_to_obs[:, :3, :3], points) + w @ can_to_obs[:, :3, 3]
+
+    return to_pose
 
 
 def input_room(subject: Subject, margin: float, garment: bool = True) -> Room:

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..body import PART_NAMES
+from ..body import PART_NAMES, PosedBody
 from ..body.template import template_colors, vertex_normals
 from ..core.cameras import Camera
 from ..data.mesh_render import MeshAppearance, MeshRenderer
@@ -117,6 +117,8 @@ class InputView:
     person: np.ndarray  # (H, W) bool, the mask on the host (patch sampling)
     labels: np.ndarray  # (H, W) int body part of the posed body, -1 background
     seen: np.ndarray  # (V,) bool: the body vertices the camera sees
+    posed: PosedBody  # the body in the photo's pose
+    depth: np.ndarray  # (H, W) the posed body's z-depth in ``camera`` (0 = none)
     held: np.ndarray  # (V,) bool: seen vertices within the reach of forearms held in front (no source, no light sample)
     normals: np.ndarray  # (V, 3) the posed body's vertex normals (world)
     shading: Shading  # the photo's light, fitted at full resolution to the seen vertices
@@ -161,6 +163,8 @@ class InputView:
             person,
             labels,
             seen,
+            posed,
+            out["depth"][0],
             held,
             normals,
             shading,
