@@ -9,7 +9,14 @@ from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.body.template import vertex_normals
 from elicit_diffrender.core.cameras import look_at
 from elicit_diffrender.data.mesh_render import MeshAppearance, MeshRenderer
-from elicit_diffrender.fit.completion import FRONT_STRIP, MirrorCompletion, facing_cosine, visible_vertices
+from elicit_diffrender.fit.completion import (
+    FRONT_STRIP,
+    MirrorCompletion,
+    behind_body,
+    exit_depth,
+    facing_cosine,
+    visible_vertices,
+)
 from elicit_diffrender.fit.shading import Shading, estimate_shading
 from elicit_diffrender.model.field import CanonicalField, grid_points
 
@@ -39,6 +46,32 @@ def test_visibility_from_a_front_camera_sees_the_front_only(anny_body):
     assert seen[facing < -0.5].mean() < 0.02  # facing away
     # Nothing is seen outside the person's mask.
     assert not visible_vertices(verts, normals, cam, depth, np.zeros_like(depth, dtype=bool)).any()
+
+
+def test_points_on_the_far_side_of_the_body_are_behind_it_thick_or_thin(anny_body):
+    """Seen from the front, points just inside the front of the torso or the neck are not behind the body; points
+    just inside their backs are, the neck's though it is thin; points above the head are not."""
+    verts, normals = _canonical(anny_body)
+    centre = verts.mean(0)
+    cam = look_at(centre + np.array([0.0, 0.0, 3.0]), centre, np.array([0.0, 1.0, 0.0]), 300.0, 256, 256)
+    depth = MeshRenderer(anny_body.faces).render(verts, [cam], ("depth",))["depth"][0]
+    far = exit_depth(verts, cam, depth)
+    hit = depth > 0
+    assert (far[hit] >= depth[hit]).all() and (far[~hit] == 0).all()
+    parts = anny_body.vertex_parts()
+    torso = (parts == PART_NAMES.index("torso")) & (np.abs(verts[:, 0] - centre[0]) < 0.05)
+    head = parts == PART_NAMES.index("head")
+    neck_y = verts[head, 1].min() - 0.03  # below the jaw, above the shoulders
+    neck = torso & (np.abs(verts[:, 1] - neck_y) < 0.015)
+    chest = torso & (np.abs(verts[:, 1] - (neck_y - 0.25)) < 0.02)
+    for part in (chest, neck):
+        front = part & (normals[:, 2] > 0.7)
+        back = part & (normals[:, 2] < -0.7)
+        assert front.sum() >= 3 and back.sum() >= 3
+        assert not behind_body(verts[front] - 0.01 * normals[front], cam, depth, far).any()
+        assert behind_body(verts[back] - 0.01 * normals[back], cam, depth, far).all()
+    above = verts[chest] + np.array([0.0, verts[:, 1].max() - verts[chest, 1].min() + 0.1, 0.0])
+    assert not behind_body(above, cam, depth, far).any()
 
 
 def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):

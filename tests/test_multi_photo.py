@@ -126,8 +126,8 @@ def test_a_back_photo_is_reconstructed_not_guessed(truth, tmp_path):
             torch.testing.assert_close(
                 avatar.bone_transforms(*two.motion.frame(two.frame_index(back[1]))), avatar.refined(raw, 1)
             )
-    # Measured: 20.08 against 18.64 on the person's pixels (17.96 before photo patches left the cells behind the
-    # body to the completion).
+    # Measured: 20.07 against 18.68 on the person's pixels (17.96 before photo patches left the cells on the
+    # body's far side to the completion).
     assert scores["two"] > scores["one"] + 1.0, scores
     assert scores["two"] > scores["reference"] + 1.0, scores
 

@@ -25,7 +25,9 @@ points ``BLUR_VOXELS`` away; the targets are detached and recomputed every ``REF
 seen side they copy changes slowly). No render, no encoder.
 
 A vertex is seen when it faces the input camera, projects inside the input mask and lies within
-``DEPTH_TOLERANCE`` of the depth of the body's own surface there. A seen vertex is no source when it lies within
+``DEPTH_TOLERANCE`` of the depth of the body's own surface there. A completed cell on the body's far side in every
+photo (:func:`behind_body`: past the middle of the ray's way through the body) takes its colour from the completion
+alone: a photo's rays that cross a soft or thin front do not paint it. A seen vertex is no source when it lies within
 the arms' reach in front of the body (:func:`within_held_reach`): what the photo shows there may be a folder, a
 phone or a bag the hands hold, which the back does not carry.
 """
@@ -37,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..body import PART_NAMES
@@ -44,7 +47,7 @@ from ..core.cameras import Camera
 from ..model.field import CanonicalField, grid_axes, nearest, node_points
 
 DEPTH_TOLERANCE = 0.03  # metres: a vertex this far behind the visible surface is hidden
-BEHIND_DEPTH = 0.10  # metres: a cell this far behind the visible surface is past any misfit of body and avatar
+EXIT_SPREAD = 3  # pixels over which a vertex's depth marks where rays leave the body
 INSIDE_VOXELS = 2.0  # cells down to this many voxels inside the body surface are coloured
 BLUR_VOXELS = 1.5  # spacing of the blur stencil at the source
 NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they copy their crown
@@ -107,16 +110,31 @@ def visible_vertices(
     return seen & facing
 
 
-def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, margin: float = BEHIND_DEPTH) -> np.ndarray:
-    """(P,) bool: posed ``points`` that lie more than ``margin`` behind the body's surface in ``camera`` (its (H, W)
-    z-``depth``, 0 = none): what the camera's photo shows there lies in front of them."""
+def exit_depth(vertices: np.ndarray, camera: Camera, depth: np.ndarray) -> np.ndarray:
+    """(H, W) the z-depth where each pixel's ray leaves the posed body (its furthest vertex there, spread over
+    ``EXIT_SPREAD`` pixels to close the gaps between vertices), where the body's (H, W) z-``depth`` (0 = none) has a
+    first hit; 0 elsewhere."""
+    uv, z = camera.project(vertices)
+    h, w = depth.shape
+    px = np.floor(uv).astype(int)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
+    far = np.zeros((h, w))
+    np.maximum.at(far, (px[ok, 1], px[ok, 0]), z[ok])
+    far = ndimage.grey_dilation(far, size=EXIT_SPREAD)
+    return np.where(depth > 0, np.maximum(far, depth), 0.0)
+
+
+def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, exit: np.ndarray) -> np.ndarray:
+    """(P,) bool: posed ``points`` on the far side of the body in ``camera``: past the middle of each ray's way
+    through it (between its (H, W) z-``depth`` of entry, 0 = none, and its ``exit`` depth) and more than
+    ``DEPTH_TOLERANCE`` behind the entry. What the camera's photo shows there lies in front of them."""
     uv, z = camera.project(points)
     h, w = depth.shape
     px = np.floor(uv).astype(int)
     inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
     behind = np.zeros(len(points), dtype=bool)
-    d = depth[px[inside, 1], px[inside, 0]]
-    behind[inside] = (d > 0) & (z[inside] > d + margin)
+    d, e = depth[px[inside, 1], px[inside, 0]], exit[px[inside, 1], px[inside, 0]]
+    behind[inside] = (d > 0) & (z[inside] > np.maximum(d + DEPTH_TOLERANCE, 0.5 * (d + e)))
     return behind
 
 

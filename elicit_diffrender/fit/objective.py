@@ -26,7 +26,7 @@ from ..model.encoders import FALLBACK_NAME, EncoderError, load_encoder
 from ..model.field import CanonicalField, grid_axes, node_points
 from ..model.losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..model.total_variation import total_variation
-from .completion import MirrorCompletion, behind_body
+from .completion import MirrorCompletion, behind_body, exit_depth
 from .config import FitConfig
 from .hybrid_sampling import NovelView, crop_window, part_pixels, plan_novel_view
 from .regions import GradRegions
@@ -95,9 +95,9 @@ class Objective:
         self.field = renderer.avatar.field
         self.weights = {name: float(getattr(cfg, key)) for name, key in TERMS.items()}
         self.encoder, self.encoder_info, self.completion = None, None, None
-        # The completed cells that lie behind the body in every observed photo. A photo's patch could still reach
-        # them through a thin or carved front (beside held hands: the folder's colour on the back), so photo
-        # steps leave their colour to the completion.
+        # The completed cells on the body's far side in every observed photo. A photo's patch could still reach
+        # them through a soft or thin front (a held folder's colour on the back's waist, a white side stripe on the
+        # backs of the legs, the collar on the nape), so photo steps leave their colour to the completion.
         self.behind: torch.Tensor | None = None
         if self.on("semantic") or self.on("text"):
             self.encoder, self.encoder_info = load_encoder(cfg.encoder, cfg.clip_model, cfg.clip_pretrained)
@@ -110,8 +110,8 @@ class Objective:
                 self.completion = self._mirror_completion(body, body_sdf, cfg.box_margin, garment)
                 self.behind = self._behind_every_photo(body, self.completion.cells)
                 log.info(
-                    "%d of the %d completed cells lie behind the body in every photo: photo patches leave their "
-                    "colour alone",
+                    "%d of the %d completed cells lie on the body's far side in every photo: photo patches leave "
+                    "their colour alone",
                     self.behind.numel(),
                     len(self.completion),
                 )
@@ -172,14 +172,15 @@ class Objective:
         return pairs
 
     def _behind_every_photo(self, body: BodyModel, cells: torch.Tensor) -> torch.Tensor:
-        """Those of the colour grid's ``cells`` (flat indices) whose place in every observed photo's pose lies behind
-        the body's surface in that photo (:func:`behind_body`)."""
+        """Those of the colour grid's ``cells`` (flat indices) whose place in every observed photo's pose lies on the
+        body's far side in that photo (:func:`behind_body`)."""
         index = cells.cpu().numpy()
         axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
         points = node_points(axes, np.unravel_index(index, self.field.shape))
         behind = np.ones(len(index), dtype=bool)
         for view in self.views.observed:
-            behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth)
+            far = exit_depth(view.posed.vertices, view.camera, view.depth)
+            behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth, far)
         return torch.as_tensor(index[behind], dtype=torch.long, device=self.device)
 
     def on(self, name: str) -> bool:
@@ -331,7 +332,7 @@ class Objective:
 
     def backward(self, loss: torch.Tensor) -> None:
         """Gradients of the step's ``loss`` (:meth:`total`) in every parameter's ``.grad``. A photo's patch leaves
-        the colour of the completed cells behind the body alone (:attr:`behind`)."""
+        the colour of the completed cells on the body's far side alone (:attr:`behind`)."""
         loss.backward()
         if self.photo_step and self.behind is not None and self.field.color.grad is not None:
             self.field.color.grad.view(-1, 3).index_fill_(0, self.behind, 0.0)
