@@ -90,9 +90,11 @@ def canonical_to_pose(body: BodyModel, posed: PosedBody) -> Callable[[np.ndarray
     can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
     weights = body.reduced_weights()
 
+    frames = can_to_obs[:, :3, :].reshape(len(can_to_obs), 12)
+
     def to_pose(points: np.ndarray) -> np.ndarray:
-        w = splat_weights(points, canon.vertices, weights)
-        return np.einsum("pb,bij,pj->pi", w, can_to_obs[:, :3, :3], points) + w @ can_to_obs[:, :3, 3]
+        blended = (splat_weights(points, canon.vertices, weights) @ frames).reshape(-1, 3, 4)  # each point's own map
+        return np.einsum("pij,pj->pi", blended[:, :, :3], points) + blended[:, :, 3]
 
     return to_pose
 

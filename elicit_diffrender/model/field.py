@@ -126,7 +126,10 @@ def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray,
     """(P, B) skinning weights at ``points``: the inverse-square-distance blend of the ``k`` nearest vertices'."""
     dist, idx = nearest(cKDTree(vertices), points, k)
     w = 1.0 / np.maximum(dist, 1e-3) ** 2
-    return np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
+    blend = w[:, 0, None] * weights[idx[:, 0]]  # one neighbour at a time: no (P, k, B) gather
+    for j in range(1, idx.shape[1]):
+        blend += w[:, j, None] * weights[idx[:, j]]
+    return blend / w.sum(1, keepdims=True)
 
 
 @dataclass
