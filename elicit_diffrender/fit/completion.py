@@ -124,16 +124,16 @@ def exit_depth(vertices: np.ndarray, camera: Camera, depth: np.ndarray) -> np.nd
     return np.where(depth > 0, np.maximum(far, depth), 0.0)
 
 
-def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, exit: np.ndarray) -> np.ndarray:
+def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, far: np.ndarray) -> np.ndarray:
     """(P,) bool: posed ``points`` on the far side of the body in ``camera``: past the middle of each ray's way
-    through it (between its (H, W) z-``depth`` of entry, 0 = none, and its ``exit`` depth) and more than
-    ``DEPTH_TOLERANCE`` behind the entry. What the camera's photo shows there lies in front of them."""
+    through it (between its (H, W) z-``depth`` of entry, 0 = none, and its ``far`` depth of exit, :func:`exit_depth`)
+    and more than ``DEPTH_TOLERANCE`` behind the entry. What the camera's photo shows there lies in front of them."""
     uv, z = camera.project(points)
     h, w = depth.shape
     px = np.floor(uv).astype(int)
     inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
     behind = np.zeros(len(points), dtype=bool)
-    d, e = depth[px[inside, 1], px[inside, 0]], exit[px[inside, 1], px[inside, 0]]
+    d, e = depth[px[inside, 1], px[inside, 0]], far[px[inside, 1], px[inside, 0]]
     behind[inside] = (d > 0) & (z[inside] > np.maximum(d + DEPTH_TOLERANCE, 0.5 * (d + e)))
     return behind
 

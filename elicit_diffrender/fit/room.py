@@ -89,8 +89,7 @@ def canonical_to_pose(body: BodyModel, posed: PosedBody) -> Callable[[np.ndarray
     canon = body.pose(body.canonical_pose())
     can_to_obs = body.reduced_transforms(posed) @ np.linalg.inv(body.reduced_transforms(canon))
     weights = body.reduced_weights()
-
-    frames = can_to_obs[:, :3, :].reshape(len(can_to_obs), 12)
+    frames = can_to_obs[:, :3, :].reshape(len(can_to_obs), 12)  # each bone's 3 x 4 map, flat
 
     def to_pose(points: np.ndarray) -> np.ndarray:
         blended = (splat_weights(points, canon.vertices, weights) @ frames).reshape(-1, 3, 4)  # each point's own map
