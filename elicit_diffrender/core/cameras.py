@@ -45,6 +45,15 @@ class Camera:
         with np.errstate(divide="ignore", invalid="ignore"):
             return uv[:, :2] / z[:, None], z
 
+    def pixels(self, points: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World points (N, 3) -> the (N, 2) integer pixel (column, row) each falls in, camera depth z (N,), and
+        (N,) bool: in front of the camera and inside an image of ``shape`` (H, W) there."""
+        uv, z = self.project(points)
+        px = np.floor(uv).astype(int)
+        h, w = shape[:2]
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
+        return px, z, inside
+
     def pixel_grid(self) -> np.ndarray:
         """Centres of all pixels, row-major, (H*W, 2)."""
         j, i = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")

@@ -98,11 +98,8 @@ def visible_vertices(
 ) -> np.ndarray:
     """(V,) bool: which posed ``vertices`` (with outward ``normals``) the camera sees, given the body's
     (H, W) z-depth (0 = none) and the person's (H, W) mask."""
-    uv, z = camera.project(vertices)
+    px, z, inside = camera.pixels(vertices, depth.shape)
     facing = np.einsum("vc,vc->v", normals, camera.center - vertices) > 0
-    h, w = depth.shape
-    px = np.floor(uv).astype(int)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
     seen = np.zeros(len(vertices), dtype=bool)
     u, v = px[inside, 0], px[inside, 1]
     d = depth[v, u]
@@ -114,11 +111,8 @@ def exit_depth(vertices: np.ndarray, camera: Camera, depth: np.ndarray) -> np.nd
     """(H, W) the z-depth where each pixel's ray leaves the posed body (its furthest vertex there, spread over
     ``EXIT_SPREAD`` pixels to close the gaps between vertices), where the body's (H, W) z-``depth`` (0 = none) has a
     first hit; 0 elsewhere."""
-    uv, z = camera.project(vertices)
-    h, w = depth.shape
-    px = np.floor(uv).astype(int)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
-    far = np.zeros((h, w))
+    px, z, ok = camera.pixels(vertices, depth.shape)
+    far = np.zeros(depth.shape)
     np.maximum.at(far, (px[ok, 1], px[ok, 0]), z[ok])
     far = ndimage.grey_dilation(far, size=EXIT_SPREAD)
     return np.where(depth > 0, np.maximum(far, depth), 0.0)
@@ -128,10 +122,7 @@ def behind_body(points: np.ndarray, camera: Camera, depth: np.ndarray, far: np.n
     """(P,) bool: posed ``points`` on the far side of the body in ``camera``: past the middle of each ray's way
     through it (between its (H, W) z-``depth`` of entry, 0 = none, and its ``far`` depth of exit, :func:`exit_depth`)
     and more than ``DEPTH_TOLERANCE`` behind the entry. What the camera's photo shows there lies in front of them."""
-    uv, z = camera.project(points)
-    h, w = depth.shape
-    px = np.floor(uv).astype(int)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (z > 0)
+    px, z, inside = camera.pixels(points, depth.shape)
     behind = np.zeros(len(points), dtype=bool)
     d, e = depth[px[inside, 1], px[inside, 0]], far[px[inside, 1], px[inside, 0]]
     behind[inside] = (d > 0) & (z[inside] > np.maximum(d + DEPTH_TOLERANCE, 0.5 * (d + e)))

@@ -74,10 +74,7 @@ class InputFrame:
     def in_mask(self, points: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
         """(P,) bool: input-pose ``points`` that project inside ``mask`` (default: the person mask)."""
         inside = self.person if mask is None else mask
-        uv, z = self.camera.project(points)
-        px = np.floor(uv).astype(int)
-        h, w = inside.shape
-        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        px, _, ok = self.camera.pixels(points, inside.shape)
         hit = np.zeros(len(points), dtype=bool)
         hit[ok] = inside[px[ok, 1], px[ok, 0]]
         return hit
