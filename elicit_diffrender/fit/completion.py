@@ -332,6 +332,9 @@ def mirror_sources(
     mirror image through their part's frontal plane (not for the head; a torso cell within ``FRONT_STRIP`` of the
     body's midline takes it moved sideways to that distance, on its own side), through the body's sagittal plane,
     through both; the head's crown for the head; the nearest seen vertex of their part; the nearest seen vertex.
+    The image moved sideways is put at the cell's own height above the body's surface (``(p - x_owner) .
+    n_owner``) over the body vertex nearest to it: a chest beside its middle is flatter than the back's middle is
+    deep, and the plain image would fall in the air in front of it, copying no garment's colour.
     Returns the (N, 3) sources (NaN: none), their body vertices and how many cells each rule served."""
     part = vertex_parts[owner]
     centre_z = np.zeros(len(PART_NAMES))
@@ -361,6 +364,10 @@ def mirror_sources(
         free = np.nonzero(np.isnan(source[:, 0]) & allowed)[0]
         _, cand = nearest(tree, candidate[free]) if free.size else (None, np.zeros(0, dtype=np.int64))
         ok = seen[cand]
+        if name == "front/back beside the midline":
+            rows, at = free[ok], cand[ok]
+            height = np.einsum("nc,nc->n", p[rows] - canonical[owner[rows]], normals[owner[rows]])
+            candidate[rows] = canonical[at] + height[:, None] * normals[at]
         source[free[ok]] = candidate[free[ok]]
         source_vertex[free[ok]] = cand[ok]
         counts[name] = int(ok.sum())

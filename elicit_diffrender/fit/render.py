@@ -62,8 +62,11 @@ class PoseRenderer:
         if key != self._space_key:
             self._space_key = key
             self._spaces = {p: s for p, s in self._spaces.items() if not self._moving(p)}
+            missing = [p for p in self._bones if p not in self._spaces]
+            samples = self.avatar.skinning_samples() if missing else None  # one set for every pose
+            for pose in missing:
+                self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach(), samples=samples)
             for pose in self._bones:
-                self.space(pose)
                 self.baked(pose)
 
     def invalidate(self) -> None:

@@ -262,12 +262,14 @@ class Avatar(nn.Module):
 
     # ---- rendering ----------------------------------------------------------------------------------
     @torch.no_grad()
-    def observation_space(self, bones: torch.Tensor, margin: float = 0.03) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells."""
+    def skinning_samples(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The canonical points that bound every pose's observation space and their normalised bone weights,
+        ((N, 3), (N, B)): eight points about the centre of every occupied cell (every cell of a ``BOUNDS_CELL``
+        lattice over the box without skipping). They depend on the grid and the motion weights, not on the pose:
+        one set serves every pose's :meth:`observation_space`."""
         f = self.field
         dev = self.device
         skipping = f.occupancy_cell > 0
-        # Without skipping, the whole canonical box is bounded through a lattice of BOUNDS_CELL cells.
         cell = f.occupancy_cell if skipping else BOUNDS_CELL
         shape = tuple(f.occupancy.shape) if skipping else grid_shape(f.box.cpu(), cell)
         cells = torch.as_tensor(grid_points(f.box.double().cpu(), shape), dtype=torch.float32, device=dev)
@@ -280,7 +282,19 @@ class Avatar(nn.Module):
         )
         pts = (occupied[:, None] + offsets[None]).reshape(-1, 3)
         w = sample_grid(self.motion_weights(), self.motion_weights.box, pts)  # (N, B)
-        w = w / w.sum(1, keepdim=True).clamp(min=1e-6)
+        return pts, w / w.sum(1, keepdim=True).clamp(min=1e-6)
+
+    @torch.no_grad()
+    def observation_space(
+        self, bones: torch.Tensor, margin: float = 0.03, samples: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The observation-space box and occupancy grid for a pose, from the forward-warped canonical cells
+        (``samples``: :meth:`skinning_samples`, computed here when not given)."""
+        f = self.field
+        dev = self.device
+        skipping = f.occupancy_cell > 0
+        cell = f.occupancy_cell if skipping else BOUNDS_CELL
+        pts, w = samples if samples is not None else self.skinning_samples()
         can_to_obs = bones @ rigid_inverse(self.canonical_bones)
         posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
         pad = margin + max(cell, f.voxel_size)
