@@ -74,7 +74,7 @@ def test_points_on_the_far_side_of_the_body_are_behind_it_thick_or_thin(anny_bod
     assert not behind_body(above, cam, depth, far).any()
 
 
-SNAPPED = 0.03  # metres a mirror image may move to reach the body's surface
+SNAPPED = 0.06  # metres a moved image may shift onto the surface: up to the cells' margin (0.05) plus a vertex spacing
 
 
 def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
@@ -93,27 +93,30 @@ def test_unseen_cells_take_the_colour_of_their_mirror_image(anny_body):
     src = pairs.sources.numpy()
     head = PART_NAMES.index("head")
     _, nearest = cKDTree(verts).query(cells)
-    # Front/back mirror images: about the same x and y (on the body's surface there), and the source is in front of
-    # the cell; a torso cell near the midline takes the point beside the front's middle (a tie, a placket, a V-neck),
-    # on its own side, never the middle.
+    # Front/back mirror images: same x and y, and the source is in front of the cell; a torso cell near the midline
+    # takes the point beside the front's middle (a tie, a placket, a V-neck), on its own side, never the middle,
+    # moved onto the body's surface there (so its x and y are the image's within SNAPPED).
     mid = verts[:, 0].mean()
     off = cells[:, 0] - mid
     in_strip = (parts[nearest] == PART_NAMES.index("torso")) & (np.abs(off) < FRONT_STRIP)
     beside = np.abs(src[:, 0] - (mid + np.where(off >= 0, 1.0, -1.0) * FRONT_STRIP)) < SNAPPED
-    same_x = np.abs(src[:, 0] - cells[:, 0]) < SNAPPED
-    body = parts[nearest] != head  # the head is never mirrored front to back (its back is not a face)
-    front_back = body & np.where(in_strip, beside, same_x) & (np.abs(src[:, 1] - cells[:, 1]) < SNAPPED)
-    assert front_back[body].mean() > 0.8
+    beside &= np.abs(src[:, 1] - cells[:, 1]) < SNAPPED
+    same_xy = (np.abs(src[:, 0] - cells[:, 0]) < 1e-6) & (np.abs(src[:, 1] - cells[:, 1]) < 1e-6)
+    front_back = np.where(in_strip, beside, same_xy)
+    assert front_back[parts[nearest] != head].mean() > 0.8
     behind = cells[:, 2] < centre_z[parts[nearest]]  # (an unseen cell in front, between the legs, mirrors back)
     assert (src[front_back & behind, 2] > cells[front_back & behind, 2]).all() and (front_back & behind).mean() > 0.5
     assert in_strip.sum() > 20 and front_back[in_strip].mean() > 0.8
-    assert pairs.rule_counts["front/back beside the midline"] >= 0.9 * (front_back & in_strip).sum()
+    # Every moved image is found within SNAPPED of its place; a few images of other rules fall there too.
+    moved_count, found = pairs.rule_counts["front/back beside the midline"], (front_back & in_strip).sum()
+    assert 0.95 * found <= moved_count <= found
     # The image moved sideways lies as high above the body's surface as its cell (the plain image of a cell on the
     # back's middle, moved to the strip's edge, lies in the air in front of the chest).
     height = signed_distance(cells, verts, normals)
     moved = front_back & in_strip
     assert np.percentile(np.abs(signed_distance(src, verts, normals) - height)[moved], 90) < 0.01
-    # The head's cells copy a seen vertex of its crown.
+    # The head is never mirrored front to back (its back is not a face): its cells copy a seen vertex of its crown.
+    assert not (front_back & (parts[nearest] == head) & (np.abs(src[:, 2] - cells[:, 2]) > 1e-6)).any()
     assert pairs.rule_counts["crown"] > 0
     head_src = cKDTree(verts).query(src[parts[nearest] == head])
     assert (head_src[0] < 1e-6).all() and (parts[head_src[1]] == head).all() and seen[head_src[1]].all()
