@@ -17,7 +17,7 @@ from elicit_diffrender.fit.completion import (
     facing_cosine,
     visible_vertices,
 )
-from elicit_diffrender.fit.shading import Shading, estimate_shading
+from elicit_diffrender.fit.shading import RATIOS, Shading, _search, estimate_shading, fibonacci_sphere
 from elicit_diffrender.model.field import CanonicalField, grid_points, signed_distance
 
 
@@ -182,6 +182,31 @@ def test_the_photos_light_is_recovered_from_the_body_it_shows(anny_body):
     patterned = estimate_shading(*_lit_body(anny_body, truth, pattern=0.7))
     assert 0.1 < patterned.explained < 0.2 and patterned.ratio > 0.2
     assert np.degrees(np.arccos(np.clip(patterned.direction @ truth.direction, -1, 1))) < 12.0
+
+
+def test_the_light_search_finds_the_least_squares_of_every_candidate():
+    """``_search``'s closed-form cost (no (N, D) residuals) picks the ratio and direction whose residuals, each
+    minus its cluster's weighted mean, have the least weighted squares, computed here the direct way."""
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    group = rng.integers(0, 5, 500)
+    light = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+    log_y = rng.normal(size=5)[group] + np.log1p(0.9 * np.maximum(normals @ light, 0)) + 0.05 * rng.normal(size=500)
+    weight = (rng.random(500) > 0.2).astype(float)
+    dirs = fibonacci_sphere(60)
+    cost, ratio, d, residuals = _search(log_y, normals, group, weight, dirs)
+    onehot = np.eye(5)[group] * weight[:, None]
+    best = (np.inf, None, None, None)
+    for k in RATIOS:
+        r = log_y[:, None] - np.log1p(k * np.maximum(normals @ dirs.T, 0.0))
+        res = r - ((onehot.T @ r) / np.maximum(onehot.sum(0), 1e-9)[:, None])[group]
+        costs = (weight[:, None] * res**2).sum(0)
+        if costs.min() < best[0]:
+            best = (costs.min(), k, int(costs.argmin()), res[:, costs.argmin()])
+    assert (ratio, d) == (best[1], best[2])
+    np.testing.assert_allclose(cost, best[0], rtol=1e-9)
+    np.testing.assert_allclose(residuals, best[3], atol=1e-12)
 
 
 def test_unseen_cells_facing_away_from_the_light_are_relit_darker(anny_body):

@@ -106,19 +106,30 @@ def _cap(direction: np.ndarray, degrees: float, n: int) -> np.ndarray:
 
 
 def _search(log_y, normals, group, weight, dirs):
-    """The (cost, ratio, direction index, residuals) of least weighted squares over ``RATIOS`` x ``dirs``."""
+    """The (cost, ratio, direction index, residuals) of least weighted squares over ``RATIOS`` x ``dirs``.
+
+    With ``L = log(1 + k cos)`` (N, D) for a ratio ``k``, the residual ``r = log_y - L`` minus its cluster's weighted
+    mean (its log albedo) costs ``sum_i w_i r_i^2 - sum_c S_c^2 / n_c`` (``S_c = sum_{i in c} w_i r_i``, ``n_c =
+    sum_{i in c} w_i``): per ratio, one product of the clusters' weights and ``w log_y`` (C + 1, N) with ``L`` and
+    one of ``w`` with ``L^2``; the (N, D) residuals are never formed."""
     onehot = np.eye(group.max() + 1)[group] * weight[:, None]
     counts = np.maximum(onehot.sum(0), 1e-9)
     cos = np.maximum(normals @ dirs.T, 0.0)  # (N, D)
+    sums_y = onehot.T @ log_y  # (C,)
+    square_y = float(weight @ log_y**2)
+    left = np.concatenate([onehot, (weight * log_y)[:, None]], 1).T  # (C + 1, N)
     best = None
     for k in RATIOS:
-        r = log_y[:, None] - np.log1p(k * cos)
-        res = r - ((onehot.T @ r) / counts[:, None])[group]  # minus each cluster's mean: its log albedo
-        cost = (weight[:, None] * res**2).sum(0)
+        light = np.log1p(k * cos)
+        products = left @ light  # (C + 1, D)
+        sums = sums_y[:, None] - products[:-1]  # S_c for every direction
+        cost = square_y - 2 * products[-1] + weight @ light**2 - (sums**2 / counts[:, None]).sum(0)
         d = int(cost.argmin())
         if best is None or cost[d] < best[0]:
-            best = (float(cost[d]), float(k), d, res[:, d])
-    return best
+            best = (float(cost[d]), float(k), d)
+    cost, k, d = best
+    r = log_y - np.log1p(k * cos[:, d])
+    return cost, k, d, r - ((onehot.T @ r) / counts)[group]
 
 
 def estimate_shading(
