@@ -65,7 +65,7 @@ class PoseRenderer:
             missing = [p for p in self._bones if p not in self._spaces]
             samples = self.avatar.skinning_samples() if missing else None  # one set for every pose
             for pose in missing:
-                self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach(), samples=samples)
+                self.space(pose, samples)
             for pose in self._bones:
                 self.baked(pose)
 
@@ -73,9 +73,10 @@ class PoseRenderer:
         """Rebuild the learned poses' spaces at the next :meth:`refresh` (the avatar was loaded from a file)."""
         self._space_key = -1
 
-    def space(self, pose: int) -> tuple:
+    def space(self, pose: int, samples: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple:
+        """The pose's observation space, built once (``samples``: ``Avatar.skinning_samples``, if at hand)."""
         if pose not in self._spaces:
-            self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach())
+            self._spaces[pose] = self.avatar.observation_space(self.bones(pose).detach(), samples=samples)
         return self._spaces[pose]
 
     def baked(self, pose: int) -> BakedWarp | None:

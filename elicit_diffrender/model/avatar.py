@@ -261,6 +261,12 @@ class Avatar(nn.Module):
         return self.canonical_bones @ rigid_inverse(bones)
 
     # ---- rendering ----------------------------------------------------------------------------------
+    @property
+    def bounds_cell(self) -> float:
+        """Metres between the cells whose samples bound a pose's observation space: the occupancy grid's, or
+        ``BOUNDS_CELL`` without empty-space skipping."""
+        return self.field.occupancy_cell if self.field.occupancy_cell > 0 else BOUNDS_CELL
+
     @torch.no_grad()
     def skinning_samples(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The canonical points that bound every pose's observation space and their normalised bone weights,
@@ -269,8 +275,7 @@ class Avatar(nn.Module):
         one set serves every pose's :meth:`observation_space`."""
         f = self.field
         dev = self.device
-        skipping = f.occupancy_cell > 0
-        cell = f.occupancy_cell if skipping else BOUNDS_CELL
+        skipping, cell = f.occupancy_cell > 0, self.bounds_cell
         shape = tuple(f.occupancy.shape) if skipping else grid_shape(f.box.cpu(), cell)
         cells = torch.as_tensor(grid_points(f.box.double().cpu(), shape), dtype=torch.float32, device=dev)
         occupied = cells[f.occupancy.bool()] if skipping else cells.reshape(-1, 3)
@@ -292,15 +297,13 @@ class Avatar(nn.Module):
         (``samples``: :meth:`skinning_samples`, computed here when not given)."""
         f = self.field
         dev = self.device
-        skipping = f.occupancy_cell > 0
-        cell = f.occupancy_cell if skipping else BOUNDS_CELL
         pts, w = samples if samples is not None else self.skinning_samples()
         can_to_obs = bones @ rigid_inverse(self.canonical_bones)
         posed = torch.einsum("nb,bij,nj->ni", w, can_to_obs[:, :3, :3], pts) + w @ can_to_obs[:, :3, 3]
-        pad = margin + max(cell, f.voxel_size)
+        pad = margin + max(self.bounds_cell, f.voxel_size)
         box = torch.stack([posed.min(0).values - pad, posed.max(0).values + pad])
         host = box.cpu()  # renders read the box on the host (kernel arguments)
-        if not skipping:
+        if f.occupancy_cell <= 0:  # no empty-space skipping: no occupancy grid
             return host, None
         shape = tuple(max(2, int(np.ceil(float(e) / f.occupancy_cell))) for e in (host[1] - host[0]))
         size = torch.tensor(shape, device=dev)
