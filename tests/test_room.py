@@ -5,11 +5,12 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.core.io import write_image
 from elicit_diffrender.data.subject import load_subject
-from elicit_diffrender.fit.room import LEG_PARTS, MAX_REACH, InputFrame, input_room
+from elicit_diffrender.fit.room import LEG_PARTS, MAX_REACH, SLACK, InputFrame, input_room
 from elicit_diffrender.inputs.synth import synthesize
 from elicit_diffrender.model.avatar import Avatar, sample_grid
 
@@ -82,6 +83,41 @@ def test_touching_thighs_are_not_a_skirt(subjects, tmp_path):
         write_image(subject.mask_path(subject.input_camera, subject.input_frame), mask.astype(np.float32))
         found[limit] = input_room(subject, MARGIN).hull is not None
     assert found == {0.04: False, 0.10: True}
+
+
+def test_hair_round_the_head_stands_off_its_back_too(subjects, tmp_path):
+    """A mask that stands ``STANDOFF`` off the head's outline above the ears (hair round the head) gives the
+    room a hull that deep all round the hair-covered head, the back included, which the photo does not show;
+    not in front of the face, and not further out. The plain mask's head gets none."""
+    plain, _ = subjects
+    frame = InputFrame.load(plain)
+    assert frame.person.shape == frame.labels.shape  # the test subject's mask is at the work size
+    assert "hair" not in input_room(plain, MARGIN).hull_names
+    metres_per_pixel = float(np.median(frame.camera.project(frame.posed)[1])) / frame.camera.K[0, 0]
+    canon = frame.canonical
+    head = canon[frame.vertex_parts == PART_NAMES.index("head")]
+    ear_row = frame.camera.project(frame.posed[frame.vertex_parts == PART_NAMES.index("head")])[0][:, 1]
+    above_ears = np.arange(frame.person.shape[0])[:, None] < np.percentile(ear_row, 60)
+    off_head = ndimage.distance_transform_edt(frame.labels != PART_NAMES.index("head")) * metres_per_pixel
+    grown = (off_head <= STANDOFF) & above_ears
+    copy = tmp_path / "haired"
+    shutil.copytree(plain.root, copy)
+    haired = load_subject(copy)
+    write_image(haired.mask_path(haired.input_camera, haired.input_frame), (frame.person | grown).astype(np.float32))
+    room = input_room(haired, MARGIN)
+    assert room.hull_names == ("hair",)
+    assert abs(room.hull_reach - SLACK - STANDOFF) < 1.5 * metres_per_pixel, room.hull_reach
+    centre = head.mean(0)
+    back = head[np.argmin(head[:, 2])] + [0.0, 0.0, -0.5 * STANDOFF]  # behind the skull, at eye level or so
+    top = head[np.argmax(head[:, 1])] + [0.0, 0.5 * STANDOFF, 0.0]
+    face = head[np.argmax(head[:, 2])] + [0.0, 0.0, 0.5 * STANDOFF]
+    far_back = head[np.argmin(head[:, 2])] + [0.0, 0.0, -3 * STANDOFF]
+    assert back[1] > centre[1] - 0.05
+    assert room.hull(np.stack([back, top, face, far_back])).tolist() == [True, True, False, False]
+    assert input_room(haired, MARGIN, hair=False).hull is None
+
+
+STANDOFF = 0.06  # metres of hair round the head in ``test_hair_round_the_head_stands_off_its_back_too``
 
 
 def test_hair_above_the_head_grows_the_room_there_only(subjects):

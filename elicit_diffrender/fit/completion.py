@@ -191,7 +191,7 @@ class MirrorCompletion:
         sdf: np.ndarray,
         margin: float,
         light: np.ndarray | None = None,
-        garment: np.ndarray | None = None,
+        hull: np.ndarray | None = None,
         colors: np.ndarray | None = None,
         facing: np.ndarray | None = None,
         rule: str = "mirror",
@@ -199,8 +199,8 @@ class MirrorCompletion:
     ) -> MirrorCompletion:
         """Sources for ``field``'s unseen cells from the canonical body (``canonical`` vertices, ``normals``,
         ``vertex_parts``, and ``sdf``: ``field.body_distance`` of it) and which of its vertices the input camera
-        sees; cells up to ``margin`` outside the body count, and the ``garment`` cells (flat bool: a garment's
-        hull) however far out. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without
+        sees; cells up to ``margin`` outside the body count, and the ``hull`` cells (flat bool: the room's hulls,
+        :mod:`.room`) however far out. ``light`` (V,) is the photo's light ``S`` at every vertex (input pose); without
         it the gains are 1. ``colors`` (V, 3) are the photo's colours at the seen vertices (NaN elsewhere),
         ``facing`` (V,) the cosine between each vertex's normal and the way to the input camera; ``rule`` is
         ``"mirror"`` (:func:`mirror_sources`) or ``"guarded"`` (the mirror, with :func:`guard_details`). ``held`` (V,)
@@ -208,16 +208,16 @@ class MirrorCompletion:
         sdf = sdf.reshape(-1)
         # Beyond EXACT_VOXELS outside the body ``sdf`` only bounds the distance from below: the nearest-vertex
         # query that finds each cell's owner also gives the distance that decides the room.
-        room = sdf < margin if garment is None else (sdf < margin) | garment
+        room = sdf < margin if hull is None else (sdf < margin) | hull
         near = np.nonzero((sdf > -INSIDE_VOXELS * field.voxel_size) & room)[0]
         axes = [a.numpy() for a in grid_axes(field.box.double(), field.shape)]
         pts = node_points(axes, np.unravel_index(near, field.shape))  # of ``near``
         tree = cKDTree(canonical)
         dist, idx = nearest(tree, pts, within=max(margin, INSIDE_VOXELS * field.voxel_size))
-        far = np.nonzero(np.isinf(dist))[0]  # only a garment's cells lie farther out; find their owners too
+        far = np.nonzero(np.isinf(dist))[0]  # only a hull's cells lie farther out; find their owners too
         if far.size:
             dist[far], idx[far] = nearest(tree, pts[far])
-        keep = (sdf[near] < 0) | (dist < margin) | (False if garment is None else garment[near])
+        keep = (sdf[near] < 0) | (dist < margin) | (False if hull is None else hull[near])
         near, idx, pts = near[keep], idx[keep], pts[keep]
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[hidden], idx[hidden]
@@ -486,6 +486,15 @@ def head_layout(canonical: np.ndarray, vertex_parts: np.ndarray) -> tuple[float,
     return float(ears[:, 1].mean()), float(ears[:, 2].mean()), float(ears[:, 0].mean())
 
 
+def hair_covered(canonical: np.ndarray, vertex_parts: np.ndarray, layout: tuple[float, float, float]) -> np.ndarray:
+    """(V,) bool: the head's vertices that hair covers when there is hair: above the ears, or behind them down
+    to the nape (``layout``: :func:`head_layout`)."""
+    ear_y, ear_z, _ = layout
+    y, z = canonical[:, 1], canonical[:, 2]
+    head = vertex_parts == PART_NAMES.index("head")
+    return head & ((y > ear_y + 0.03) | ((z < ear_z + 0.01) & (y > ear_y - 0.05)))
+
+
 def hair_pool(
     canonical: np.ndarray, normals: np.ndarray, vertex_parts: np.ndarray, seen: np.ndarray, colors: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -495,9 +504,10 @@ def hair_pool(
     source; (V,) bool: the head's vertices that hair covers when there is hair (above the ears, or behind them
     down to the nape)."""
     head = vertex_parts == PART_NAMES.index("head")
-    ear_y, ear_z, mid_x = head_layout(canonical, vertex_parts)
+    layout = head_layout(canonical, vertex_parts)
+    ear_y, ear_z, mid_x = layout
     y, z = canonical[:, 1], canonical[:, 2]
-    scalp = head & ((y > ear_y + 0.03) | ((z < ear_z + 0.01) & (y > ear_y - 0.05)))
+    scalp = hair_covered(canonical, vertex_parts, layout)
     face = head & (np.abs(canonical[:, 0] - mid_x) < FACE_HALF_WIDTH) & (z > ear_z + 0.04) & (y < ear_y + 0.05)
     known = seen & ~np.isnan(colors[:, 0])
     cheeks = known & head & (normals[:, 2] > 0.6) & (np.abs(y - ear_y) < 0.04)

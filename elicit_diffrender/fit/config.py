@@ -67,6 +67,7 @@ class FitConfig:
     # "reference" crops (the paper's supplementary variant: no pose alignment, nothing reconstructed)
     multi_photo: str = "observed"
     garment_hull: bool = True  # a garment that bridges the legs in the photo gets depth (fit/room.py)
+    hair_hull: bool = True  # hair that stands off the head in the photo stands off its back too (fit/room.py)
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
     # While the motion weights and a training pose are fixed, that pose's inverse warp is baked into a look-up
     # table with nodes this far apart (metres) and read trilinearly (0 = the exact per-bone warp for every sample)

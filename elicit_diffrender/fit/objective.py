@@ -55,14 +55,14 @@ log = logging.getLogger("elicit.fit")
 
 
 def outside_body(
-    body_sdf: np.ndarray, field: CanonicalField, device: torch.device, garment: np.ndarray | None
+    body_sdf: np.ndarray, field: CanonicalField, device: torch.device, hull: np.ndarray | None
 ) -> torch.Tensor:
     """1 for grid cells more than one cell outside the canonical body (``body_sdf``: ``field.body_distance``;
-    where density is clothing), except the ``garment`` cells (flat bool: the hull of a garment that bridges
-    the legs, whose depth is a prior's)."""
+    where density is clothing), except the ``hull`` cells (flat bool: the room's hulls of the hair and of a
+    garment that bridges the legs, whose depth is a prior's)."""
     outside = body_sdf.reshape(-1) > field.voxel_size
-    if garment is not None:
-        outside &= ~garment
+    if hull is not None:
+        outside &= ~hull
     return torch.as_tensor(outside.reshape(field.shape), dtype=torch.float32, device=device)
 
 
@@ -86,10 +86,10 @@ class Objective:
         streams: RandomStreams,
         body: BodyModel,
         body_sdf: np.ndarray,
-        garment: np.ndarray | None = None,
+        hull: np.ndarray | None = None,
     ) -> None:
         """``body_sdf``: the canonical body's signed distance at the grid's nodes (``field.body_distance``);
-        ``garment``: flat bool over the grid's cells, the hull of a garment that bridges the legs (:mod:`.room`)."""
+        ``hull``: flat bool over the grid's cells, the room's hulls (hair, a garment between the legs: :mod:`.room`)."""
         self.cfg, self.views, self.renderer, self.streams = cfg, views, renderer, streams
         self.device = renderer.avatar.device
         self.field = renderer.avatar.field
@@ -107,7 +107,7 @@ class Objective:
             if cfg.text_prompt and self.on("text"):
                 raise EncoderError(f"text_prompt needs CLIP weights; the semantic prior here is {FALLBACK_NAME}")
             if self.on("semantic") and self.on("mirror"):
-                self.completion = self._mirror_completion(body, body_sdf, cfg.box_margin, garment)
+                self.completion = self._mirror_completion(body, body_sdf, cfg.box_margin, hull)
                 self.behind = self._behind_every_photo(body, self.completion.cells)
                 log.info(
                     "%d of the %d completed cells lie on the body's far side in every photo: photo patches leave "
@@ -119,13 +119,13 @@ class Objective:
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
         self.perceptual = Perceptual(cfg.perceptual, self.device)
-        self.outside_body = outside_body(body_sdf, self.field, self.device, garment) if self.on("sparsity") else None
+        self.outside_body = outside_body(body_sdf, self.field, self.device, hull) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
         self.regions = GradRegions()  # the grid regions the step's regularisers read
         self.photo_step = False  # this step reconstructs a patch of an input photo
 
     def _mirror_completion(
-        self, body: BodyModel, body_sdf: np.ndarray, margin: float, garment: np.ndarray | None
+        self, body: BodyModel, body_sdf: np.ndarray, margin: float, hull: np.ndarray | None
     ) -> MirrorCompletion:
         """The completion of the cells no observed photo sees; each vertex takes its colour and facing from the
         photo that sees it most squarely clear of the hands (of those that see it, if none does), the light is the
@@ -149,7 +149,7 @@ class Objective:
             body_sdf,
             margin,
             light,
-            garment,
+            hull,
             colors,
             facing,
             self.cfg.completion,

@@ -88,13 +88,13 @@ class Trainer:
         self.stats = RunStats()
         self.stage, self.step, self.lr_scale = 1, 0, 1.0
         body = subject.body
-        self.room = input_room(subject, cfg.box_margin, cfg.garment_hull)
+        self.room = input_room(subject, cfg.box_margin, cfg.garment_hull, cfg.hair_hull)
         if self.room.extends is not None:
             log.info(
                 "room: the input mask reaches %.2f m from the body (box_margin %.2f m)", self.room.reach, cfg.box_margin
             )
         if self.room.hull is not None:
-            log.info("room: a garment bridges the legs in the photo; its hull reaches %.2f m", self.room.hull_reach)
+            log.info("room: hulls of %s reach %.2f m", " and ".join(self.room.hull_names), self.room.hull_reach)
         self.avatar = Avatar.from_body(
             body,
             subject.body_spec,
@@ -122,13 +122,11 @@ class Trainer:
         self.renderer = PoseRenderer(
             self.avatar, subject, poses, cfg.samples_per_ray, cfg.t_thresh, self.streams, cfg.warp_cell
         )
-        self.garment = None  # flat bool over the grid's cells: the hull of a garment that bridges the legs
+        self.hull = None  # flat bool over the grid's cells: the room's hulls (hair, a garment between the legs)
         if self.room.hull is not None:
             f = self.avatar.field
-            self.garment = self.room.hull(grid_points(f.box.double().cpu(), f.shape).reshape(-1, 3).numpy())
-        self.objective = Objective(
-            cfg, self.views, self.renderer, self.streams, body, self.avatar.body_sdf, self.garment
-        )
+            self.hull = self.room.hull(grid_points(f.box.double().cpu(), f.shape).reshape(-1, 3).numpy())
+        self.objective = Objective(cfg, self.views, self.renderer, self.streams, body, self.avatar.body_sdf, self.hull)
         self.guard = EmptyRenderGuard(self.avatar, self.renderer, self.views.input)
         self.make_optimizer()
         self.stats.seconds["prepare"] = time.perf_counter() - t0
@@ -235,9 +233,9 @@ class Trainer:
             colors = self.views.input.part_colors()
             self.avatar.field.set_colors_by_part(canon.vertices, self.subject.body.vertex_parts(), colors)
             log.info("stage 2 colours: reset to the input image's mean colour per body part")
-        if self.garment is not None:
-            self.avatar.field.fill(self.garment)
-            log.info("stage 2 density: the garment's hull (%d cells) starts opaque", int(self.garment.sum()))
+        if self.hull is not None:
+            self.avatar.field.fill(self.hull)
+            log.info("stage 2 density: the room's hulls (%d cells) start opaque", int(self.hull.sum()))
         self.make_optimizer()
 
     def step_terms(self, stage: int) -> Terms | None:

@@ -136,13 +136,15 @@ def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray,
 class Room:
     """How far outside the canonical body the avatar may hold density (metres): ``margin`` everywhere, ``reach``
     at the points ``extends`` selects (where the photo shows more than the body: hair, loose clothing), and
-    ``hull_reach`` at the points ``hull`` selects (a garment's depth, :mod:`elicit_diffrender.fit.room`)."""
+    ``hull_reach`` at the points ``hull`` selects (the hair's depth round the head, a garment's between the legs:
+    ``hull_names``, :mod:`elicit_diffrender.fit.room`)."""
 
     margin: float
     reach: float = 0.0
     extends: Callable[[np.ndarray], np.ndarray] | None = None
     hull_reach: float = 0.0
     hull: Callable[[np.ndarray], np.ndarray] | None = None
+    hull_names: tuple[str, ...] = ()
 
     @property
     def widest(self) -> float:
