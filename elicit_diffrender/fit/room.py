@@ -34,7 +34,7 @@ from ..body.template import vertex_normals
 from ..core.cameras import Camera
 from ..data.mesh_render import MeshRenderer
 from ..data.subject import Subject
-from ..model.field import Room, signed_distance, splat_weights
+from ..model.field import Room, nearest, signed_distance, splat_weights
 
 SLACK = 0.03  # metres added to the measured reach
 MAX_REACH = 0.5  # metres: a mask further than this from the body is not the person's
@@ -183,10 +183,10 @@ def hair_hull(frame: InputFrame, metres_per_pixel: float) -> tuple[Callable[[np.
         """(P,) bool: canonical ``points`` within the hair's depth off the hair-covered head."""
         hit = np.all((points >= lo) & (points <= hi), axis=1)  # the head's box first: a grid is millions of points
         if hit.any():
-            sdf = signed_distance(points[hit], frame.canonical, frame.normals)
+            sdf = signed_distance(points[hit], frame.canonical, frame.normals, tree=tree)
             hit[hit] = (sdf > 0) & (sdf <= depth)
         if hit.any():
-            _, owner = tree.query(points[hit])
+            _, owner = nearest(tree, points[hit])
             hit[np.flatnonzero(hit)[~scalp[owner]]] = False
         if hit.any():
             hit[hit] = frame.in_mask(frame.to_input_pose(points[hit]))
