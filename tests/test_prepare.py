@@ -321,36 +321,3 @@ def test_an_upright_trunk_takes_the_thighs_lean_and_keeps_its_own_sideways_tilt(
     towards = np.degrees(np.arctan2(-out[2].item(), -out[1].item()))
     assert abs(towards - (-3.0)) < 1e-6 and abs(out[0].item() - trunk[0].item()) < 1e-3
     assert abs(out.norm().item() - 1.0) < 1e-12
-
-
-def test_a_standing_persons_spine_leans_to_the_camera_as_their_legs_do():
-    """The upright-stance prior's cost: the squared difference between how far the legs' axis (the ankles' midpoint
-    to the hips') and the spine (pelvis to neck) lean along the camera's axis. Zero for a body standing straight,
-    upright in the image or tipped as a tilted camera sees it; (sin a - sin b)^2 for legs leaning a and a spine
-    leaning b; a sideways lean, which the photo shows, and knees bent forward over feet below the hips cost nothing."""
-    from elicit_diffrender.body.fitting import AnnyFit
-
-    fit = AnnyFit()
-    heads = torch.zeros(len(fit.names), 3, dtype=torch.float64)
-    index = {n: fit.names.index(n) for n in ("upperleg01.L", "upperleg01.R", "foot.L", "foot.R", "lowerleg01.L",
-                                             "lowerleg01.R", "root", "neck01")}  # fmt: skip
-
-    def direction(lean_deg: float, sideways_deg: float = 0.0) -> torch.Tensor:  # camera axes: x right, y down, z away
-        t, s = np.radians(lean_deg), np.radians(sideways_deg)
-        return torch.tensor([np.sin(s), -np.cos(s) * np.cos(t), -np.cos(s) * np.sin(t)], dtype=torch.float64)
-
-    def stand(legs_deg: float, spine_deg: float, sideways_deg: float = 0.0) -> float:
-        for side, x in (("L", -0.1), ("R", 0.1)):
-            foot, hip, knee = index[f"foot.{side}"], index[f"upperleg01.{side}"], index[f"lowerleg01.{side}"]
-            heads[foot] = torch.tensor([x, 0.9, 3.0], dtype=torch.float64)
-            heads[hip] = heads[foot] + 0.85 * direction(legs_deg, sideways_deg)
-            heads[knee] = (heads[foot] + heads[hip]) / 2 + torch.tensor([0.0, 0.0, -0.08], dtype=torch.float64)
-        heads[index["root"]] = heads[index["upperleg01.L"]] / 2 + heads[index["upperleg01.R"]] / 2
-        heads[index["neck01"]] = heads[index["root"]] + 0.5 * direction(spine_deg, sideways_deg)
-        return fit.upright_stance(heads).item()
-
-    assert stand(0.0, 0.0) < 1e-12
-    assert stand(10.0, 10.0) < 1e-12  # a camera 10 degrees above, looking down: the whole body leans alike
-    assert abs(stand(4.0, -7.0) - (np.sin(np.radians(4.0)) + np.sin(np.radians(7.0))) ** 2) < 1e-9
-    assert abs(stand(9.0, 0.0) - np.sin(np.radians(9.0)) ** 2) < 1e-9  # the hips 9 degrees nearer the camera
-    assert stand(0.0, 0.0, 12.0) < 1e-12

@@ -134,15 +134,6 @@ UPRIGHT_WEIGHT = 1.0
 # camera differs from its thighs' by more than this (its errors on the test subjects: 14-23 degrees; a hip sway or
 # a slight stoop stays below).
 UPRIGHT_TRIGGER_DEG = 10.0
-# A standing person's legs (the ankles' midpoint to the hips') and spine stand vertical, so in the photo's camera
-# both lean towards or away from it alike, by the camera's pitch: the cost of their leans differing
-# (``AnnyFit.upright_stance``), only where the photo shows a standing person. No camera pitch is assumed. On the 18
-# photo-path inputs (level cameras) the trunk's lean error fell from 3.7 to 2.9 degrees (it stood 6-9 degrees back
-# over upright legs on `arms_crossed`, `arms_raised`, `long_hair`, `short_dark_hair`), from a camera 10 degrees
-# above the pelvis (8 inputs) from 8.3 to 5.3, where the shins lost 1.0-1.5. Holding both lines upright to the
-# camera instead (a level camera assumed) met 3 degrees everywhere on the level cameras but lost 1-4 degrees on
-# the tilted ones.
-UPRIGHT_STANCE_WEIGHT = 1.5
 # Cost of each shin leaving the image plane (the square of its direction's component along the camera's axis),
 # for a person not standing whose shin the image shows at length (its knee-to-ankle line at least SHIN_AT_LENGTH
 # torso lengths long): a seated person's shins, whose tilt towards the camera nothing else in one photo fixes
@@ -264,17 +255,6 @@ class AnnyFit(torch.nn.Module):
         thighs = heads[self.legs[:, 0]] - heads[self.legs[:, 1]]
         thighs = thighs / thighs.norm(dim=1, keepdim=True).clamp(min=1e-9)
         return (spine[2] - thighs[:, 2].mean()) ** 2
-
-    def upright_stance(self, heads: torch.Tensor) -> torch.Tensor:
-        """How differently the legs' axis (the ankles' midpoint to the hips') and the spine (pelvis to neck) lean
-        towards or away from the camera: the squared difference of their directions' components along the camera's
-        axis (camera space: z), from the joint ``heads`` (J, 3). Zero for a body that stands straight, however the
-        camera is tilted: both lean as the camera's pitch makes them."""
-        hips, ankles = heads[self.legs[:, 0]].mean(0), heads[self.feet].mean(0)
-        pelvis, neck = heads[self.spine_ends]
-        lines = torch.stack([hips - ankles, neck - pelvis])
-        lines = lines / lines.norm(dim=1, keepdim=True).clamp(min=1e-9)
-        return (lines[0, 2] - lines[1, 2]) ** 2
 
     def result(self) -> dict:
         pose = np.zeros((len(self.names), 3))
@@ -649,8 +629,6 @@ def fit_anny_to_image(
             total = total + SHIN_PLANE_WEIGHT * fit.shin_plane(heads)
             if hold_upright:
                 total = total + UPRIGHT_WEIGHT * fit.uprightness(heads)
-            if is_standing:
-                total = total + UPRIGHT_STANCE_WEIGHT * fit.upright_stance(heads)
             if keypoints is not None:
                 total = total + kp_loss(verts, heads, rots)
             if joints3d is not None:
