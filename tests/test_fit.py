@@ -12,6 +12,7 @@ import pytest
 import torch
 from devices import DEVICE
 
+from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.core.io import read_tensors, write_tensors
 from elicit_diffrender.data.subject import SubjectError, load_subject
 from elicit_diffrender.fit.checkpoint import CHECKPOINT, FitError, read_checkpoint
@@ -19,6 +20,7 @@ from elicit_diffrender.fit.config import ConfigError, make_config
 from elicit_diffrender.fit.trainer import Trainer
 from elicit_diffrender.fit.views import crop_image
 from elicit_diffrender.model.avatar import Avatar, AvatarError
+from elicit_diffrender.model.field import grid_points
 from elicit_diffrender.model.load import load_avatar
 from elicit_diffrender.model.skinning import lookup_baked_warp
 from elicit_diffrender.model.volume import BakedWarp
@@ -376,6 +378,34 @@ def test_a_photo_patch_leaves_the_colour_behind_the_body_to_the_completion(tmp_p
     terms = objective.regularisers(2, 0)
     objective.backward(objective.total(terms))
     assert field.color.grad.reshape(-1, 3)[behind].abs().sum() > 0
+
+
+def test_the_far_side_gets_a_layer_of_clothing_that_starts_opaque(tmp_path, tiny_subject):
+    """The cells within ``far_side_layer`` outside the body, off the head and behind the body in the photo (the
+    camera in front), start stage 2 opaque and are spared the sparsity prior; with the key at 0 there are none."""
+    cfg = make_config("cpu-fast", None, TINY + ["far_side_layer=0.03"])
+    trainer = Trainer(tiny_subject, cfg, tmp_path / "run")
+    field, layer = trainer.avatar.field, trainer.objective.far_side
+    sdf = trainer.avatar.body_sdf.reshape(-1)
+    assert layer.sum() > 20
+    assert (sdf[layer] > 0).all() and (sdf[layer] <= 0.03).all()
+    body = tiny_subject.body
+    canon = body.pose(body.canonical_pose()).vertices
+    points = grid_points(field.box.double().cpu(), field.shape).reshape(-1, 3).numpy()[layer]
+    owner = np.linalg.norm(points[:, None] - canon[None, ::7], axis=-1).argmin(1) * 7
+    parts = body.vertex_parts()
+    assert not (parts[owner] == PART_NAMES.index("head")).any()
+    torso = parts[owner] == PART_NAMES.index("torso")
+    assert torso.sum() > 5
+    torso_centre = canon[parts == PART_NAMES.index("torso"), 2].mean()
+    assert (points[torso, 2] < torso_centre).all()  # the back, not the chest
+    assert trainer.objective.outside_body.reshape(-1)[torch.as_tensor(layer)].sum() == 0
+    before = field.density.detach().reshape(-1)[torch.as_tensor(layer)].clone()
+    trainer.start_stage_2()
+    after = field.density.detach().reshape(-1)[torch.as_tensor(layer)]
+    assert (after >= 3.0).all() and (before < 3.0).any()
+    off = Trainer(tiny_subject, make_config("cpu-fast", None, TINY + ["far_side_layer=0"]), tmp_path / "off")
+    assert not off.objective.far_side.any()
 
 
 def test_a_fit_trains_when_the_caller_turned_gradients_off(tmp_path, tiny_subject):

@@ -68,6 +68,8 @@ class FitConfig:
     multi_photo: str = "observed"
     garment_hull: bool = True  # a garment that bridges the legs in the photo gets depth (fit/room.py)
     hair_hull: bool = True  # hair that stands off the head in the photo stands off its back too (fit/room.py)
+    # Metres of clothing on the body's far side in every photo, opaque from stage 2 on (fit/objective.py; 0: none)
+    far_side_layer: float = 0.016
     occupancy_cell: float = 0.04  # coarse occupancy cell for empty-space skipping, metres (0 = off)
     # While the motion weights and a training pose are fixed, that pose's inverse warp is baked into a look-up
     # table with nodes this far apart (metres) and read trilinearly (0 = the exact per-bone warp for every sample)

@@ -18,12 +18,13 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
-from ..body import BodyModel
+from ..body import PART_NAMES, BodyModel
 from ..body.template import vertex_normals
 from ..core.host_reads import on_host
 from ..model.encoders import FALLBACK_NAME, EncoderError, load_encoder
-from ..model.field import CanonicalField, grid_axes, node_points
+from ..model.field import CanonicalField, grid_axes, nearest, node_points
 from ..model.losses import Perceptual, edge_distance, edge_loss, mse, opacity_entropy, semantic_loss, silhouette_loss
 from ..model.total_variation import total_variation
 from .completion import MirrorCompletion, behind_body, exit_depth
@@ -50,6 +51,7 @@ TERMS = {
     "sparsity": "w_sparsity",
 }
 Terms = dict[str, torch.Tensor]
+NEAREST_SLACK = 0.05  # metres: a point this much further from the body's nearest vertex than its signed distance
 PHOTO_REFERENCE_DEG = 45.0  # a novel view's semantic reference is an input photo this close to it in yaw
 log = logging.getLogger("elicit.fit")
 
@@ -119,7 +121,15 @@ class Objective:
         if cfg.text_prompt and self.on("text") and self.encoder is not None:
             self.text_embedding = self.encoder.encode_text(cfg.text_prompt)
         self.perceptual = Perceptual(cfg.perceptual, self.device)
-        self.outside_body = outside_body(body_sdf, self.field, self.device, hull) if self.on("sparsity") else None
+        self.far_side = self._far_side_layer(body, body_sdf, cfg.far_side_layer)
+        if self.far_side.any():
+            log.info(
+                "far side: %d cells within %.3f m of the body, behind it in every photo, are clothing",
+                int(self.far_side.sum()),
+                cfg.far_side_layer,
+            )
+        exempt = self.far_side if hull is None else hull | self.far_side
+        self.outside_body = outside_body(body_sdf, self.field, self.device, exempt) if self.on("sparsity") else None
         self.skipped_references = 0  # semantic steps without a usable reference crop
         self.regions = GradRegions()  # the grid regions the step's regularisers read
         self.photo_step = False  # this step reconstructs a patch of an input photo
@@ -175,13 +185,38 @@ class Objective:
         """Those of the colour grid's ``cells`` (flat indices) whose place in every observed photo's pose lies on the
         body's far side in that photo (:func:`behind_body`)."""
         index = cells.cpu().numpy()
+        return torch.as_tensor(index[self._behind(body, index)], dtype=torch.long, device=self.device)
+
+    def _behind(self, body: BodyModel, index: np.ndarray) -> np.ndarray:
+        """(N,) bool: the grid's nodes ``index`` (flat) whose place in every observed photo's pose lies on the
+        body's far side in that photo (:func:`behind_body`)."""
         axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
         points = node_points(axes, np.unravel_index(index, self.field.shape))
         behind = np.ones(len(index), dtype=bool)
         for view in self.views.observed:
             far = exit_depth(view.posed.vertices, view.camera, view.depth)
             behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth, far)
-        return torch.as_tensor(index[behind], dtype=torch.long, device=self.device)
+        return behind
+
+    def _far_side_layer(self, body: BodyModel, body_sdf: np.ndarray, thickness: float) -> np.ndarray:
+        """Flat bool over the grid's cells: those within ``thickness`` outside the canonical body, off the head,
+        that lie on the body's far side in every observed photo. The body is fitted to the photo's outline, not to
+        the clothes' depth, so the clothing a photo shows in front of the body has no counterpart behind it, and
+        side and rear views come out thinner than the person; these cells are that counterpart (stage 2 starts
+        with them opaque). The head's back is the hair hull's (:mod:`.room`)."""
+        layer = np.zeros(body_sdf.size, dtype=bool)
+        if thickness <= 0:
+            return layer
+        sdf = body_sdf.reshape(-1)
+        index = np.flatnonzero((sdf > 0) & (sdf <= thickness))
+        axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
+        points = node_points(axes, np.unravel_index(index, self.field.shape))
+        tree = cKDTree(body.pose(body.canonical_pose()).vertices)
+        _, owner = nearest(tree, points, within=thickness + NEAREST_SLACK)  # owner tree.n: no vertex that near
+        parts = np.append(body.vertex_parts(), -1)
+        index = index[parts[owner] != PART_NAMES.index("head")]
+        layer[index[self._behind(body, index)]] = True
+        return layer
 
     def on(self, name: str) -> bool:
         return self.weights[name] > 0

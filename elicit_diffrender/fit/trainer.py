@@ -236,6 +236,10 @@ class Trainer:
         if self.hull is not None:
             self.avatar.field.fill(self.hull)
             log.info("stage 2 density: the room's hulls (%d cells) start opaque", int(self.hull.sum()))
+        if self.objective.far_side.any():
+            self.avatar.field.fill(self.objective.far_side)
+            cells = int(self.objective.far_side.sum())
+            log.info("stage 2 density: the far side's clothing (%d cells) starts opaque", cells)
         self.make_optimizer()
 
     def step_terms(self, stage: int) -> Terms | None:
