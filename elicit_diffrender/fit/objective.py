@@ -51,7 +51,6 @@ TERMS = {
     "sparsity": "w_sparsity",
 }
 Terms = dict[str, torch.Tensor]
-NEAREST_SLACK = 0.05  # metres: a point this much further from the body's nearest vertex than its signed distance
 PHOTO_REFERENCE_DEG = 45.0  # a novel view's semantic reference is an input photo this close to it in yaw
 log = logging.getLogger("elicit.fit")
 
@@ -185,14 +184,18 @@ class Objective:
         """Those of the colour grid's ``cells`` (flat indices) whose place in every observed photo's pose lies on the
         body's far side in that photo (:func:`behind_body`)."""
         index = cells.cpu().numpy()
-        return torch.as_tensor(index[self._behind(body, index)], dtype=torch.long, device=self.device)
+        behind = self._behind(body, self._node_points(index))
+        return torch.as_tensor(index[behind], dtype=torch.long, device=self.device)
 
-    def _behind(self, body: BodyModel, index: np.ndarray) -> np.ndarray:
-        """(N,) bool: the grid's nodes ``index`` (flat) whose place in every observed photo's pose lies on the
-        body's far side in that photo (:func:`behind_body`)."""
+    def _node_points(self, index: np.ndarray) -> np.ndarray:
+        """(N, 3) the canonical positions of the grid's nodes ``index`` (flat)."""
         axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
-        points = node_points(axes, np.unravel_index(index, self.field.shape))
-        behind = np.ones(len(index), dtype=bool)
+        return node_points(axes, np.unravel_index(index, self.field.shape))
+
+    def _behind(self, body: BodyModel, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: canonical ``points`` whose place in every observed photo's pose lies on the body's far side in
+        that photo (:func:`behind_body`)."""
+        behind = np.ones(len(points), dtype=bool)
         for view in self.views.observed:
             far = exit_depth(view.posed.vertices, view.camera, view.depth)
             behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth, far)
@@ -209,13 +212,11 @@ class Objective:
             return layer
         sdf = body_sdf.reshape(-1)
         index = np.flatnonzero((sdf > 0) & (sdf <= thickness))
-        axes = [a.numpy() for a in grid_axes(self.field.box.double(), self.field.shape)]
-        points = node_points(axes, np.unravel_index(index, self.field.shape))
-        tree = cKDTree(body.pose(body.canonical_pose()).vertices)
-        _, owner = nearest(tree, points, within=thickness + NEAREST_SLACK)  # owner tree.n: no vertex that near
-        parts = np.append(body.vertex_parts(), -1)
-        index = index[parts[owner] != PART_NAMES.index("head")]
-        layer[index[self._behind(body, index)]] = True
+        points = self._node_points(index)
+        _, owner = nearest(cKDTree(body.pose(body.canonical_pose()).vertices), points)
+        off_head = body.vertex_parts()[owner] != PART_NAMES.index("head")
+        index, points = index[off_head], points[off_head]
+        layer[index[self._behind(body, points)]] = True
         return layer
 
     def on(self, name: str) -> bool:
