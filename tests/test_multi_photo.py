@@ -132,6 +132,30 @@ def test_a_back_photo_is_reconstructed_not_guessed(truth, tmp_path):
     assert scores["two"] > scores["reference"] + 1.0, scores
 
 
+def test_a_back_photo_keeps_the_far_side_layer_inside_its_mask(truth, tmp_path):
+    """With front + back photos the far side's layer is the cells the front photo cannot see that the back
+    photo's mask holds: none where the back photo shows only background, the front photo's alone where its mask
+    covers everything (without the mask no cell lies behind the body in both photos, so a front + back fit had no
+    layer: front views 0.2 dB below one photo's on ``bench_multi_photo``)."""
+    back = tuple(truth.meta["synthetic"]["photos"]["back"])
+    two = with_inputs(truth, tmp_path / "two", [("cam00", 0), back])
+    trainer = Trainer(two, make_config("cpu-fast", None, TINY + ["far_side_layer=0.03"]), tmp_path / "run")
+    objective, photo = trainer.objective, trainer.views.observed[1]
+    layer = objective.far_side
+    assert layer.sum() > 20
+
+    def layer_with(person: np.ndarray) -> np.ndarray:
+        photo.person = person
+        return objective._far_side_layer(two.body, trainer.avatar.body_sdf, 0.03)
+
+    mask = photo.person.copy()
+    everywhere = layer_with(np.ones_like(mask))
+    nowhere = layer_with(np.zeros_like(mask))
+    assert not (layer & ~everywhere).any() and everywhere.sum() > layer.sum()
+    assert nowhere.sum() < 0.1 * layer.sum(), (nowhere.sum(), layer.sum())
+    assert (layer_with(mask) == layer).all()
+
+
 def test_a_vertex_takes_its_colour_from_a_photo_that_shows_it_clear_of_the_hands():
     """A chest vertex the front photo sees squarely but behind a held folder, and a side photo sees clear, takes
     the side photo's colour (with the front's, a held_folder avatar from front + side photos wore the folder on its

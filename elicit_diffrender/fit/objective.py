@@ -34,7 +34,7 @@ from .regions import GradRegions
 from .render import PoseRenderer
 from .room import canonical_to_pose
 from .streams import RandomStreams
-from .views import FitViews, crop_image, min_part_pixels, random_patch
+from .views import FitViews, InputView, crop_image, min_part_pixels, random_patch
 
 # Loss term -> the config key of its weight.
 TERMS = {
@@ -123,7 +123,7 @@ class Objective:
         self.far_side = self._far_side_layer(body, body_sdf, cfg.far_side_layer)
         if self.far_side.any():
             log.info(
-                "far side: %d cells within %.3f m of the body, behind it in every photo, are clothing",
+                "far side: %d cells within %.3f m of the body, behind it in the first photo, are clothing",
                 int(self.far_side.sum()),
                 cfg.far_side_layer,
             )
@@ -197,16 +197,23 @@ class Objective:
         that photo (:func:`behind_body`)."""
         behind = np.ones(len(points), dtype=bool)
         for view in self.views.observed:
-            far = exit_depth(view.posed.vertices, view.camera, view.depth)
-            behind &= behind_body(canonical_to_pose(body, view.posed)(points), view.camera, view.depth, far)
+            behind &= self._far_side_in(view, body, points)[0]
         return behind
+
+    @staticmethod
+    def _far_side_in(view: InputView, body: BodyModel, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) bool: canonical ``points`` on the body's far side in ``view`` (:func:`behind_body`), and their (N, 3)
+        places in its pose."""
+        posed = canonical_to_pose(body, view.posed)(points)
+        far = exit_depth(view.posed.vertices, view.camera, view.depth)
+        return behind_body(posed, view.camera, view.depth, far), posed
 
     def _far_side_layer(self, body: BodyModel, body_sdf: np.ndarray, thickness: float) -> np.ndarray:
         """Flat bool over the grid's cells: those within ``thickness`` outside the canonical body, off the head,
-        that lie on the body's far side in every observed photo. The body is fitted to the photo's outline, not to
-        the clothes' depth, so the clothing a photo shows in front of the body has no counterpart behind it, and
-        side and rear views come out thinner than the person; these cells are that counterpart (stage 2 starts
-        with them opaque). The head's back is the hair hull's (:mod:`.room`)."""
+        that the first photo cannot see and the others allow (:meth:`_hidden_from_the_first_photo`). The body is
+        fitted to the photo's outline, not to the clothes' depth, so the clothing a photo shows in front of the body
+        has no counterpart behind it, and side and rear views come out thinner than the person; these cells are that
+        counterpart (stage 2 starts with them opaque). The head's back is the hair hull's (:mod:`.room`)."""
         layer = np.zeros(body_sdf.size, dtype=bool)
         if thickness <= 0:
             return layer
@@ -216,8 +223,21 @@ class Objective:
         _, owner = nearest(cKDTree(body.pose(body.canonical_pose()).vertices), points)
         off_head = body.vertex_parts()[owner] != PART_NAMES.index("head")
         index, points = index[off_head], points[off_head]
-        layer[index[self._behind(body, points)]] = True
+        layer[index[self._hidden_from_the_first_photo(body, points)]] = True
         return layer
+
+    def _hidden_from_the_first_photo(self, body: BodyModel, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: canonical ``points`` on the body's far side in the first photo's pose and camera that every
+        other photo allows: there they lie on the far side too, or inside that photo's mask (a back photo shows
+        how far the clothes stand off the back; outside its mask they are air)."""
+        allowed = np.ones(len(points), dtype=bool)
+        for k, view in enumerate(self.views.observed):
+            hidden, posed = self._far_side_in(view, body, points)
+            if k > 0:
+                px, _, inside = view.camera.pixels(posed, view.person.shape)
+                hidden[inside] |= view.person[px[inside, 1], px[inside, 0]]
+            allowed &= hidden
+        return allowed
 
     def on(self, name: str) -> bool:
         return self.weights[name] > 0
