@@ -373,3 +373,16 @@ def test_seen_torso_behind_forearms_held_in_front_is_no_source(anny_body):
     assert np.isnan(fixed[~copies_folder]).all()  # every other cell keeps its mirror source
     _, source = cKDTree(canon).query(guarded.sources.numpy())
     assert not held[source].any()
+
+
+def test_the_pull_on_a_saturated_cell_does_not_vanish():
+    """A cell on the far side of the sigmoid from its target (colour 0.98 against 0.02) is pulled at least as hard as
+    a mid-tone cell 0.1 from its target. Through the sigmoid its gradient was 40x weaker, and the grid's smoothness
+    (on logits) blurred the unseen side's garment borders: a top faded into dark trousers at the waist."""
+    target = torch.tensor([[0.02, 0.02, 0.02], [0.6, 0.6, 0.6]])
+    pairs = MirrorCompletion(torch.arange(2), torch.zeros(2, 3), torch.ones(2), {}, 2, target, True)
+    logits = torch.tensor([[4.0, 4.0, 4.0], [float(torch.logit(torch.tensor(0.5)))] * 3], requires_grad=True)
+    pairs.loss(None, 0, logits).backward()
+    saturated, mid_tone = logits.grad.abs().sum(1)
+    assert saturated > mid_tone > 0, logits.grad
+    assert torch.allclose(pairs.targets(None), target)

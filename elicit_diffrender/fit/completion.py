@@ -18,11 +18,14 @@ the target is
 
 with ``S`` evaluated at the input-pose normals of the two points' nearest body vertices, and the term
 
-    L = mean_c || sigmoid(c_cell) - t_c ||^2
+    L = mean_c sigmoid'(0)^2 || c_cell - logit(t_c) ||^2
 
-pulls every unseen cell towards it. ``blur`` is the mean of trilinear look-ups at the source and six
-points ``BLUR_VOXELS`` away; the targets are detached and recomputed every ``REFRESH`` steps (the
-seen side they copy changes slowly). No render, no encoder.
+pulls every unseen cell's colour logits ``c_cell`` towards it. The pull acts on the logits, as the grid's
+smoothness does: through the sigmoid its gradient vanished on dark and saturated targets, and the smoothness
+blurred garment borders on the unseen side (the top faded into the trousers at the waist); ``sigmoid'(0)^2``
+keeps its strength on mid-tones. Targets are clamped to ``TARGET_RANGE``. ``blur`` is the mean of
+trilinear look-ups at the source and six points ``BLUR_VOXELS`` away; the targets are detached and
+recomputed every ``REFRESH`` steps (the seen side they copy changes slowly). No render, no encoder.
 
 A vertex is seen when it faces the input camera, projects inside the input mask and lies within
 ``DEPTH_TOLERANCE`` of the depth of the body's own surface there. A completed cell on the body's far side in every
@@ -54,6 +57,8 @@ NO_FRONT_BACK = ("head",)  # parts whose back is not their mirrored front: they 
 CROWN_UP = 0.5  # a vertex whose canonical normal's up component exceeds this ...
 CROWN_DEPTH = 0.06  # ... and that lies at most this far (metres) below its part's top is on the crown
 REFRESH = 10  # steps between recomputations of the targets
+TARGET_RANGE = (0.01, 0.99)  # target colours are clamped here: their logits stay finite
+MID_TONE_SLOPE = 0.25  # sigmoid'(0): the pull on the logits matches a pull on colours at mid-tones
 # The guarded rule (``completion = "guarded"``) compares a mirror source's photo colour with what the cell's part
 # shows at the cell's band (its place along the part's axis): the mode of the photo colours of the well-seen points
 # within ``BAND_HALF`` of it along the axis (at most ``BAND_MOST`` of them, evenly spread). A point is well seen when
@@ -315,8 +320,8 @@ class MirrorCompletion:
             return torch.zeros((), device=field.color.device)
         if self._target is None or step // REFRESH != self._key:
             self._target, self._key = self.targets(field), step // REFRESH
-        color = torch.sigmoid(cell_logits)
-        return ((color - self._target) ** 2).sum(-1).mean()
+        target = torch.logit(self._target.clamp(*TARGET_RANGE))
+        return MID_TONE_SLOPE**2 * ((cell_logits - target) ** 2).sum(-1).mean()
 
 
 def mirror_sources(
