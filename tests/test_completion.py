@@ -386,3 +386,28 @@ def test_the_pull_on_a_saturated_cell_does_not_vanish():
     saturated, mid_tone = logits.grad.abs().sum(1)
     assert saturated > mid_tone > 0, logits.grad
     assert torch.allclose(pairs.targets(None), target)
+
+
+def test_hull_cells_beyond_the_margin_are_completed_and_no_other_far_cell(anny_body):
+    """Cells farther from the body than the margin are completed only where the room's hull holds them (hair, a
+    garment between the legs): each such cell finds its nearest vertex, however far out; no other cell changes."""
+    verts, normals = _canonical(anny_body)
+    parts = anny_body.vertex_parts()
+    field, sdf = _field_around(verts, normals, voxel=0.04)
+    seen = verts[:, 2] > np.median(verts[:, 2])
+    margin = 0.03
+    points = grid_points(field.box.double(), field.shape).reshape(-1, 3).numpy()
+    dist, owner = cKDTree(verts).query(points)
+    hull = np.zeros(sdf.size, dtype=bool)
+    behind = points[:, 2] < np.median(verts[:, 2])
+    far_behind = np.flatnonzero((dist > 0.06) & (dist < 0.09) & behind & (sdf.reshape(-1) > margin))
+    hull[far_behind[::5]] = True  # some cells well beyond the margin, behind the body (unseen)
+    plain = MirrorCompletion.build(field, verts, normals, parts, seen, sdf, margin=margin, rule="mirror")
+    held = MirrorCompletion.build(field, verts, normals, parts, seen, sdf, margin=margin, hull=hull, rule="mirror")
+    completed, far = set(held.cells.tolist()), np.flatnonzero(hull)
+    hidden = far[~seen[owner[far]]]  # the hull cells whose nearest vertex is unseen
+    assert len(hidden) > 10 and held.unseen - plain.unseen == len(hidden)  # each found its owner, however far out
+    assert len(completed & set(hidden)) > 10  # and most a source
+    assert completed - set(far) == set(plain.cells.tolist())  # no other cell changes
+    outside = plain.cells.numpy()[sdf.reshape(-1)[plain.cells.numpy()] > 0]
+    assert dist[outside].max() < margin  # without a hull no cell outside the body lies beyond the margin

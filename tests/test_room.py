@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from elicit_diffrender.body import PART_NAMES
 from elicit_diffrender.core.io import write_image
@@ -188,3 +189,21 @@ def test_a_room_weight_keeps_the_torso_beside_a_hanging_arm(anny_body):
         assert min(1.0, in_room[room_share] / avatar.room_weight) > 0.8  # 5 cm out: rendered as foreground
     assert 0.2 < in_room[0.3] / in_room[1.0] < 0.45  # the room's share of the motion weight
     assert errors[0.3] < 0.5 * errors[1.0] and errors[0.3] < 0.03, errors
+
+
+def test_splatted_weights_blend_the_nearest_vertices_in_every_chunk():
+    """:func:`splat_weights` (chunked) equals the inverse-square-distance blend of the k nearest vertices' weights
+    written out at once, across chunk borders; rows of weights that sum to 1 stay so."""
+    from elicit_diffrender.model.field import SPLAT_CHUNK, splat_weights
+
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(500, 3))
+    weights = rng.random((500, 6))
+    weights /= weights.sum(1, keepdims=True)
+    points = rng.normal(size=(2 * SPLAT_CHUNK + 17, 3))
+    dist, idx = cKDTree(vertices).query(points, k=8)
+    w = 1.0 / np.maximum(dist, 1e-3) ** 2
+    expected = np.einsum("pk,pkb->pb", w, weights[idx]) / w.sum(1, keepdims=True)
+    out = splat_weights(points, vertices, weights)
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(out.sum(1), 1.0, rtol=1e-12)

@@ -192,7 +192,9 @@ class MeshRenderer:
             img = self._render(mesh, cameras, {"type": "path", "max_depth": 1}, spp, exact=False)
             alpha = np.clip(img[..., 3], 0.0, 1.0)
             if "color" in channels:
-                out["color"] = img[..., :3] / np.maximum(alpha, 1e-6)[..., None] * (alpha[..., None] > 0)
+                color = np.divide(img[..., :3], np.maximum(alpha, 1e-6)[..., None])
+                color[alpha == 0] = 0.0  # no coverage, no colour
+                out["color"] = color
             if "alpha" in channels:
                 out["alpha"] = alpha
         if "shaded" in channels:

@@ -219,7 +219,9 @@ class MirrorCompletion:
         pts = node_points(axes, np.unravel_index(near, field.shape))  # of ``near``
         tree = cKDTree(canonical)
         dist, idx = nearest(tree, pts, within=max(margin, INSIDE_VOXELS * field.voxel_size))
-        far = np.nonzero(np.isinf(dist))[0]  # only a hull's cells lie farther out; find their owners too
+        # Only a hull's cells lie farther out and stay (the others there are neither inside nor within the margin):
+        # find their owners too.
+        far = np.nonzero(np.isinf(dist) & (False if hull is None else hull[near]))[0]
         if far.size:
             dist[far], idx[far] = nearest(tree, pts[far])
         keep = (sdf[near] < 0) | (dist < margin) | (False if hull is None else hull[near])

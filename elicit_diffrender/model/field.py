@@ -122,13 +122,21 @@ def grid_signed_distance(
     return out
 
 
+SPLAT_CHUNK = 8192  # points blended at a time by :func:`splat_weights`
+
+
 def splat_weights(points: np.ndarray, vertices: np.ndarray, weights: np.ndarray, k: int = 8) -> np.ndarray:
     """(P, B) skinning weights at ``points``: the inverse-square-distance blend of the ``k`` nearest vertices'."""
     dist, idx = nearest(cKDTree(vertices), points, k)
     w = 1.0 / np.maximum(dist, 1e-3) ** 2
-    blend = w[:, 0, None] * weights[idx[:, 0]]  # one neighbour at a time: no (P, k, B) gather
-    for j in range(1, idx.shape[1]):
-        blend += w[:, j, None] * weights[idx[:, j]]
+    blend = np.empty((len(points), weights.shape[1]))
+    for lo in range(0, len(points), SPLAT_CHUNK):  # a chunk's (chunk, B) rows stay in cache over the k neighbours
+        part = slice(lo, lo + SPLAT_CHUNK)
+        wp, ip = w[part], idx[part]
+        acc = wp[:, 0, None] * weights[ip[:, 0]]  # one neighbour at a time: no (P, k, B) gather
+        for j in range(1, ip.shape[1]):
+            acc += wp[:, j, None] * weights[ip[:, j]]
+        blend[part] = acc
     return blend / w.sum(1, keepdims=True)
 
 
