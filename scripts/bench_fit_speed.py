@@ -36,8 +36,8 @@ TOLERANCE = {"psnr": 0.1, "ssim": 0.002, "novel_pose_psnr": 0.2}
 SAME_RUN_S = 900.0  # two reused fits that finished this close (plus the reference's fit time) ran in one go
 
 
-def quality(metrics: dict, run_dir: Path) -> dict:
-    finished = time.strftime("%Y-%m-%d %H:%M", time.localtime((run_dir / "metrics.json").stat().st_mtime))
+def quality(metrics: dict, finished_at: float) -> dict:
+    finished = time.strftime("%Y-%m-%d %H:%M", time.localtime(finished_at))
     return {
         "psnr": metrics["novel_view"]["psnr"],
         "ssim": metrics["novel_view"]["ssim"],
@@ -45,6 +45,15 @@ def quality(metrics: dict, run_dir: Path) -> dict:
         "fit_seconds": metrics["fit_seconds"],
         "finished": finished,
     }
+
+
+def ran_in_one_go(fitted_now: list[bool], finished_at: list[float], reference_seconds: float) -> bool:
+    """Whether the two fits ran in one go: both fitted in this run, or both reused and finished within
+    ``SAME_RUN_S`` plus the reference's fit time of each other. The machine's speed drifts over a day, so a time
+    ratio means something only then."""
+    if all(fitted_now):
+        return True
+    return not any(fitted_now) and abs(finished_at[0] - finished_at[1]) <= SAME_RUN_S + reference_seconds
 
 
 def main() -> int:
@@ -63,19 +72,17 @@ def main() -> int:
         run(cmd, env, args.work / "synth.log")
     sha = export_commit(args.reference, args.work / "reference_code")
     start = time.perf_counter()
-    results, fitted_now = {}, {}
+    results, fitted_now, finished_at = {}, [], []
     for name, code in (("reference", args.work / "reference_code"), ("this checkout", ROOT)):
         side_env = {**env, "PYTHONPATH": str(code)}
-        run_dir = args.work / name.replace(" ", "_")
-        fitted_now[name] = not (run_dir / "metrics.json").is_file()
-        results[name] = quality(fit_and_eval(elicit_command(code), subject, run_dir, [], side_env), run_dir)
+        metrics = args.work / name.replace(" ", "_") / "metrics.json"
+        fitted_now.append(not metrics.is_file())
+        measured = fit_and_eval(elicit_command(code), subject, metrics.parent, [], side_env)
+        finished_at.append(metrics.stat().st_mtime)
+        results[name] = quality(measured, finished_at[-1])
     ref, new = results["reference"], results["this checkout"]
     ratio = new["fit_seconds"] / ref["fit_seconds"]
-    # The machine's speed drifts over a day: a ratio means something only when both fits ran in one go.
-    finished = [(args.work / n.replace(" ", "_") / "metrics.json").stat().st_mtime for n in results]
-    same_run = all(fitted_now.values()) or (
-        not any(fitted_now.values()) and abs(finished[0] - finished[1]) <= SAME_RUN_S + ref["fit_seconds"]
-    )
+    same_run = ran_in_one_go(fitted_now, finished_at, ref["fit_seconds"])
     delta = {k: new[k] - ref[k] for k in TOLERANCE}
     target = {
         "at_most_half_the_time": ratio <= 0.5 if same_run else None,

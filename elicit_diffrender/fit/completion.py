@@ -219,12 +219,13 @@ class MirrorCompletion:
         pts = node_points(axes, np.unravel_index(near, field.shape))  # of ``near``
         tree = cKDTree(canonical)
         dist, idx = nearest(tree, pts, within=max(margin, INSIDE_VOXELS * field.voxel_size))
+        in_hull = np.zeros(near.size, dtype=bool) if hull is None else hull[near]
         # Only a hull's cells lie farther out and stay (the others there are neither inside nor within the margin):
         # find their owners too.
-        far = np.nonzero(np.isinf(dist) & (False if hull is None else hull[near]))[0]
+        far = np.nonzero(np.isinf(dist) & in_hull)[0]
         if far.size:
             dist[far], idx[far] = nearest(tree, pts[far])
-        keep = (sdf[near] < 0) | (dist < margin) | (False if hull is None else hull[near])
+        keep = (sdf[near] < 0) | (dist < margin) | in_hull
         near, idx, pts = near[keep], idx[keep], pts[keep]
         hidden = ~seen[idx]
         cells, p, owner = near[hidden], pts[hidden], idx[hidden]
